@@ -1,0 +1,1 @@
+"""Subcommands of the ``nocal`` CLI; see :mod:`nocal_ros.cli`."""

@@ -1,0 +1,1 @@
+"""Datasets: rosbag reading and writing, synthetic scenes, cameras and trajectories."""

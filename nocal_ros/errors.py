@@ -1,0 +1,17 @@
+"""User-facing errors. Each says what went wrong and with which file, in one line."""
+
+
+class NocalError(Exception):
+    """An error meant for the user: the CLI prints it as one line, without a traceback."""
+
+
+class BagError(NocalError):
+    """A rosbag cannot be read or holds nothing usable (missing topic, bad encoding, corruption)."""
+
+
+class CheckpointError(NocalError):
+    """A model file is missing, corrupt, truncated, or does not match what is asked of it."""
+
+
+class ConfigError(NocalError):
+    """A configuration or camera file is malformed or has invalid values."""
