@@ -1,0 +1,639 @@
+"""OdometryEstimator: camera frames in, integrated poses, twist and covariances out. No ROS here.
+
+The odometry node, ``nocal odometry`` and ``nocal demo`` all feed frames to this one class, so every
+rule about dropped frames, time jumps and bad network output lives in one place.
+
+Frames and poses
+    The pose head predicts ``T_ci_cj`` (pose of the current camera in the previous camera's frame).
+    Odometry is published for ``base_frame`` (REP 105), which is rigidly attached to the camera by the
+    static ``T_base_cam``. The ``odom`` frame is the base frame's pose at the first frame, so::
+
+        T_odom_base(t) = T_base_cam @ T_cam0_camt @ inv(T_base_cam)
+        T_bi_bj        = T_base_cam @ T_ci_cj  @ inv(T_base_cam)      (one pair, base frame)
+        T_odom_base_j  = T_odom_base_i @ T_bi_bj
+
+    With ``T_base_cam = I`` (the default) the base frame is the camera optical frame.
+
+Twist
+    ``nav_msgs/Odometry`` gives the twist in the child (base) frame. For the pair ``i -> j`` over
+    ``dt`` seconds: linear ``R_bi_bj^T t_bi_bj / dt`` (the displacement seen from ``j``), angular
+    ``log(R_bi_bj) / dt`` (the rotation vector is the same in ``i`` and ``j``).
+
+Covariance (how it is derived)
+    Each pair's error is modelled as a right perturbation ``T_bi_bj Exp(xi)``, ``xi = (rho, theta)``,
+    zero-mean Gaussian. In the camera frame ``xi`` is isotropic with per-frame standard deviations
+    ``sigma_t`` (m) and ``sigma_r`` (rad); a gap of ``g`` frames used as one pair gets ``g`` times the
+    variance (the motion, and so the error, of a ``g``-frame pair is about ``g`` single-frame pairs).
+    The values come from the checkpoint's metadata ``pose_error_std`` (``{"translation_m": ...,
+    "rotation_rad": ...}``, the spread of the pose head's error per frame on labelled validation pairs,
+    written by training) when present, else :data:`DEFAULT_POSE_ERROR_STD`. The camera-frame
+    covariance is moved to the base frame by the adjoint of ``T_base_cam``. The pose covariance, in
+    ROS order ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s
+    axes, is propagated to first order::
+
+        Sigma_j = A Sigma_i A^T + B Sigma_xi B^T,
+        A = [[I, -[R_i t_ij]x], [0, I]],   B = [[R_j, 0], [0, R_j]]
+
+    The twist covariance is ``Sigma_xi / dt^2``. A frame with no motion estimate (the first frame, or
+    one after a reset) reports a twist covariance of :data:`UNKNOWN_VARIANCE`, ROS's "unknown".
+
+Dropped frames and resets
+    The frame period is the smallest stamp step seen recently (drops only lengthen steps). A step of
+    ``g = round(dt / period)`` frames with ``g <= max_gap`` (the largest gap training used) is run as one
+    pair; a longer one starts a new pair chain from the current frame with a warning, keeping the pose
+    (the motion across the gap is lost: ``status="gap_reset"``). Time going backwards resets everything
+    (pose to identity, ``status="time_reset"``), as ROS does on a clock jump; a repeated stamp is
+    skipped. A change of image encoding starts a new chain (a pair across encodings would be
+    meaningless). A change of image size raises :class:`FrameSizeError`, leaving the state untouched,
+    until :meth:`OdometryEstimator.reset` accepts the new size. A non-finite network output skips the
+    frame (counted); the next frame pairs with the last good one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import torch
+
+from nocal_ros.errors import NocalError
+from nocal_ros.geometry import invert_transform, so3_log
+
+if TYPE_CHECKING:
+    from nocal_ros.lens import CameraCalibration
+
+log = logging.getLogger(__name__)
+
+#: Per-frame pose head error (1 sigma) used when a checkpoint records none: 1 cm, 0.5 degrees.
+DEFAULT_POSE_ERROR_STD = {"translation_m": 0.01, "rotation_rad": float(np.radians(0.5))}
+#: Variance meaning "unknown" in ROS covariance fields.
+UNKNOWN_VARIANCE = 1.0e6
+#: Largest frame gap (in frames) the shipped training curriculum draws pairs from.
+DEFAULT_MAX_GAP = 8
+#: How many recent stamp steps the frame period is estimated from.
+PERIOD_HISTORY = 32
+
+PoseFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+class FrameError(NocalError):
+    """A frame the estimator cannot use (wrong shape or type)."""
+
+
+class FrameSizeError(FrameError):
+    """The image size changed mid-stream; the learnt calibration and the pair chain no longer apply."""
+
+
+# --------------------------------------------------------------------------------------------------
+# the model, as the estimator sees it
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PoseModel:
+    """What the estimator needs from a trained model.
+
+    Attributes:
+        predict_pose: ``(image_i, image_j)`` float32 ``(B, 3, h, w)`` in ``[0, 1]`` -> ``T_ci_cj``
+            ``(B, 4, 4)``; runs under ``torch.inference_mode``.
+        input_size: ``(width, height)`` the pose head was trained at; frames are resized to it.
+        device: where ``predict_pose`` runs.
+        max_gap: largest frame gap (frames) seen in training; longer gaps reset the chain.
+        model_id: names the model in diagnostics (file name and SHA-256 prefix for checkpoints).
+        pose_error_std: per-frame ``{"translation_m", "rotation_rad"}`` (see the module notes).
+        camera: the learnt camera (``CameraModel``, native resolution) or None when unknown.
+        module: the ``nn.Module`` behind ``predict_pose``, when there is one (for precision changes).
+    """
+
+    predict_pose: PoseFunction
+    input_size: tuple[int, int]
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    max_gap: int = DEFAULT_MAX_GAP
+    model_id: str = "unnamed"
+    pose_error_std: dict = field(default_factory=lambda: dict(DEFAULT_POSE_ERROR_STD))
+    camera: Any = None
+    module: torch.nn.Module | None = None
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint: Any = None, device: str | torch.device = "auto") -> "PoseModel":
+        """Load a checkpoint (a path, a model store, a loaded ``Checkpoint``, or None for the shipped one)."""
+        from nocal_ros.checkpoint import load_checkpoint  # the learning core; imported when needed
+
+        device = resolve_device(device)
+        model_id = "shipped default"
+        if checkpoint is None or isinstance(checkpoint, (str, Path)):
+            path = None
+            if checkpoint not in (None, ""):
+                from nocal_ros.model_store import resolve_model_path
+
+                path = resolve_model_path(checkpoint)
+                model_id = _file_id(path)
+            checkpoint = load_checkpoint(path, device=str(device))
+            if path is None:
+                shipped = getattr(checkpoint, "path", None)
+                model_id = _file_id(Path(shipped)) if shipped else model_id
+        metadata = dict(getattr(checkpoint, "metadata", {}) or {})
+        model = checkpoint.model.to(device).eval()
+        size = _training_size(metadata)
+        cameras = list(getattr(checkpoint, "cameras", []) or [])
+        std = dict(DEFAULT_POSE_ERROR_STD)
+        std.update({k: float(v) for k, v in (metadata.get("pose_error_std") or {}).items() if k in std})
+        gap = metadata.get("gap_range") or metadata.get("max_gap")
+        max_gap = int(gap[-1] if isinstance(gap, (list, tuple)) else gap or DEFAULT_MAX_GAP)
+        return cls(
+            predict_pose=model.predict_pose,
+            input_size=size,
+            device=device,
+            max_gap=max_gap,
+            model_id=str(metadata.get("model_id") or model_id),
+            pose_error_std=std,
+            camera=cameras[0] if cameras else None,
+            module=model,
+        )
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """``"auto"`` -> CUDA when present, else CPU; anything else as torch understands it."""
+    if isinstance(device, torch.device):
+        return device
+    if device in ("", "auto", None):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise NocalError(f"device {device!r} requested but CUDA is not available on this machine")
+    return torch.device(device)
+
+
+def _file_id(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return f"{path.name}@{digest.hexdigest()[:12]}"
+
+
+def _training_size(metadata: dict) -> tuple[int, int]:
+    for key in ("training_resolution", "input_size", "image_size", "resolution"):
+        value = metadata.get(key)
+        if isinstance(value, dict):
+            value = (value.get("width"), value.get("height"))
+        if value is not None and len(value) == 2 and all(v for v in value):
+            return int(value[0]), int(value[1])
+    return 80, 60  # the paper's training resolution
+
+
+# --------------------------------------------------------------------------------------------------
+# results
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class OdometryResult:
+    """The estimate at one frame.
+
+    Attributes:
+        stamp_ns: the frame's stamp.
+        T_odom_base: ``(4, 4)`` base pose in ``odom``.
+        T_odom_cam: ``(4, 4)`` camera pose in ``odom`` (``T_odom_base @ T_base_cam``).
+        T_prev_curr: ``(4, 4)`` base motion since the previous frame used (identity after a reset).
+        twist: ``(6,)`` ``(vx, vy, vz, wx, wy, wz)`` in the base frame, m/s and rad/s.
+        pose_covariance, twist_covariance: ``(6, 6)`` in ROS order (see the module notes).
+        status: ``"ok"``; ``"start"`` for the first frame of a chain (first frame, after a reset or a
+            model reload); ``"gap_reset"``, ``"time_reset"`` or ``"encoding_reset"`` for a chain
+            started for that reason.
+        gap: frames spanned by the pair (0 when no pair was run).
+        inference_ms: time spent in the pose head for this frame.
+    """
+
+    stamp_ns: int
+    T_odom_base: np.ndarray
+    T_odom_cam: np.ndarray
+    T_prev_curr: np.ndarray
+    twist: np.ndarray
+    pose_covariance: np.ndarray
+    twist_covariance: np.ndarray
+    status: str
+    gap: int
+    inference_ms: float = 0.0
+
+
+@dataclass
+class OdometryCounters:
+    """What happened to the frames so far (for diagnostics and reports)."""
+
+    frames: int = 0  # frames given to process()
+    pairs: int = 0  # pose head outputs integrated
+    bridged_gaps: int = 0  # pairs spanning more than one frame period
+    gap_resets: int = 0
+    time_resets: int = 0
+    encoding_resets: int = 0
+    nonfinite_skipped: int = 0
+    duplicate_stamps: int = 0
+    size_rejected: int = 0
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """``6x6`` adjoint of ``T`` for twists ordered ``(rho, theta)``: ``T Exp(xi) T^-1 = Exp(Ad_T xi)``."""
+    R, t = T[:3, :3], T[:3, 3]
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = R
+    ad[:3, 3:] = _skew(t) @ R
+    ad[3:, 3:] = R
+    return ad
+
+
+def propagate_covariance(
+    sigma_i: np.ndarray, T_odom_i: np.ndarray, T_i_j: np.ndarray, sigma_pair: np.ndarray
+) -> np.ndarray:
+    """First-order pose covariance of ``T_odom_i @ T_i_j`` (see the module notes for the model)."""
+    R_j = T_odom_i[:3, :3] @ T_i_j[:3, :3]
+    A = np.eye(6)
+    A[:3, 3:] = -_skew(T_odom_i[:3, :3] @ T_i_j[:3, 3])
+    B = np.zeros((6, 6))
+    B[:3, :3] = R_j
+    B[3:, 3:] = R_j
+    sigma = A @ sigma_i @ A.T + B @ sigma_pair @ B.T
+    return 0.5 * (sigma + sigma.T)
+
+
+# --------------------------------------------------------------------------------------------------
+# the estimator
+# --------------------------------------------------------------------------------------------------
+
+
+class OdometryEstimator:
+    """Integrates the pose head over a stream of frames.
+
+    Args:
+        checkpoint: a checkpoint path, a model store directory, a loaded ``Checkpoint``, a
+            :class:`PoseModel` (any pose function, e.g. for tests), or None for the shipped model.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``... (ignored for a :class:`PoseModel`).
+        T_base_cam: static ``(4, 4)`` pose of the camera optical frame in the base frame.
+        frame_period_s: the camera's frame period; None estimates it from the stamps.
+        distortion_model: for :meth:`camera_info`: ``"auto"`` (plumb_bob unless rational_polynomial fits
+            clearly better), ``"plumb_bob"`` or ``"rational_polynomial"``.
+        precision: ``"fp32"``, or ``"fp16"`` / ``"bf16"`` autocast on CUDA.
+        cuda_graphs: capture the pose head in CUDA graphs on CUDA (falls back to eager if capture fails).
+
+    Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
+    """
+
+    def __init__(
+        self,
+        checkpoint: Any = None,
+        device: str | torch.device = "auto",
+        *,
+        T_base_cam: np.ndarray | None = None,
+        frame_period_s: float | None = None,
+        distortion_model: str = "auto",
+        precision: str = "fp32",
+        cuda_graphs: bool = True,
+    ) -> None:
+        self._lock = threading.RLock()
+        self.device_request = device
+        self.frame_period_s = frame_period_s
+        self.distortion_model = distortion_model
+        self.precision = precision
+        self.cuda_graphs = cuda_graphs
+        self.counters = OdometryCounters()
+        self._T_base_cam = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
+        self._T_cam_base = invert_transform(self._T_base_cam)
+        self._calibration_cache: dict[tuple[int, int], tuple["CameraCalibration", float]] = {}
+        self.model: PoseModel
+        self._runner: _PoseRunner
+        self._load(checkpoint)
+        self.reset()
+
+    # -- model -------------------------------------------------------------------------------------
+
+    def _load(self, checkpoint: Any) -> None:
+        model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
+        runner = _PoseRunner(model, precision=self.precision, cuda_graphs=self.cuda_graphs)
+        self.model, self._runner = model, runner
+        self._calibration_cache.clear()
+
+    def reload(self, checkpoint: Any = None) -> str:
+        """Swap in another model without losing the pose; returns the new model's id.
+
+        The new model is loaded before the old one is dropped, so a bad file raises (CheckpointError)
+        and leaves the running model in place. The pair chain restarts from the next frame because
+        the previous frame was preprocessed for the old model.
+        """
+        model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
+        runner = _PoseRunner(model, precision=self.precision, cuda_graphs=self.cuda_graphs)
+        with self._lock:
+            self.model, self._runner = model, runner
+            self._calibration_cache.clear()
+            self._has_previous = False
+        log.info("odometry: loaded model %s", model.model_id)
+        return model.model_id
+
+    @property
+    def model_id(self) -> str:
+        return self.model.model_id
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        return self.model.input_size
+
+    @property
+    def T_base_cam(self) -> np.ndarray:
+        return self._T_base_cam.copy()
+
+    def set_base_to_camera(self, T_base_cam: np.ndarray) -> None:
+        """Set the static camera mounting; a change restarts odometry (the odom frame moves with it)."""
+        T = np.asarray(T_base_cam, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"T_base_cam must be a finite 4x4 transform, got {T.shape}")
+        with self._lock:
+            if np.allclose(T, self._T_base_cam, atol=1e-12):
+                return
+            self._T_base_cam, self._T_cam_base = T.copy(), invert_transform(T)
+            self.reset()
+
+    # -- state -------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget everything but the model: pose to identity, no previous frame, any image size."""
+        with self._lock:
+            self._T_odom_base = np.eye(4)
+            self._pose_cov = np.zeros((6, 6))
+            self._has_previous = False
+            self._previous_stamp: int | None = None
+            self._image_shape: tuple[int, int] | None = None
+            self._encoding: str | None = None
+            self._steps: deque[int] = deque(maxlen=PERIOD_HISTORY)
+
+    @property
+    def image_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the frames accepted since the last reset, or None."""
+        return None if self._image_shape is None else (self._image_shape[1], self._image_shape[0])
+
+    def frame_period_ns(self) -> int | None:
+        if self.frame_period_s:
+            return int(round(self.frame_period_s * 1e9))
+        return min(self._steps) if self._steps else None
+
+    # -- the per-frame path ------------------------------------------------------------------------
+
+    def process(self, stamp_ns: int, image: np.ndarray, encoding: str | None = None) -> OdometryResult | None:
+        """Take one frame (``(H, W, 3)`` uint8 RGB, or ``(H, W)`` mono) and return the estimate at it.
+
+        Returns None when the frame is skipped (a repeated stamp, or a non-finite network output).
+        Raises :class:`FrameSizeError` when the size differs from the frames before it.
+        """
+        image = _as_rgb(image)
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            self.counters.frames += 1
+            shape = image.shape[:2]
+            if self._image_shape is not None and shape != self._image_shape:
+                self.counters.size_rejected += 1
+                raise FrameSizeError(
+                    f"image size changed from {self._image_shape[1]}x{self._image_shape[0]} to "
+                    f"{shape[1]}x{shape[0]} at stamp {stamp_ns}; the calibration and pose chain no longer "
+                    "apply (reset the estimator to accept the new size)"
+                )
+            self._image_shape = shape
+
+            status = "ok"
+            if self._previous_stamp is not None and stamp_ns < self._previous_stamp:
+                log.warning("odometry: time went backwards (%d -> %d ns): resetting", self._previous_stamp, stamp_ns)
+                self.counters.time_resets += 1
+                self.reset()
+                self._image_shape = shape
+                status = "time_reset"
+            if encoding is not None and self._encoding is not None and encoding != self._encoding:
+                log.warning("odometry: image encoding changed %s -> %s: new pair chain", self._encoding, encoding)
+                self.counters.encoding_resets += 1
+                self._has_previous = False
+                status = "encoding_reset"
+            if encoding is not None:
+                self._encoding = encoding
+
+            if self._has_previous and stamp_ns == self._previous_stamp:
+                self.counters.duplicate_stamps += 1
+                return None
+
+            gap = 0
+            if self._has_previous:
+                step = stamp_ns - self._previous_stamp
+                self._steps.append(step)
+                period = self.frame_period_ns() or step
+                gap = max(1, int(round(step / period)))
+                if gap > self.model.max_gap:
+                    log.warning(
+                        "odometry: %.3f s without frames (%d frames > trained gap %d): new pair chain",
+                        step * 1e-9, gap, self.model.max_gap,
+                    )
+                    self.counters.gap_resets += 1
+                    self._has_previous = False
+                    status = "gap_reset"
+                    gap = 0
+
+            slot = self._runner.load_frame(image)
+            if not self._has_previous:
+                return self._start_chain(stamp_ns, "start" if status == "ok" else status)
+
+            start = time.perf_counter()
+            T_ci_cj = self._runner.run()
+            inference_ms = (time.perf_counter() - start) * 1e3
+            if not np.isfinite(T_ci_cj).all():
+                self.counters.nonfinite_skipped += 1
+                self._runner.discard(slot)
+                log.warning("odometry: non-finite pose head output at stamp %d: frame skipped", stamp_ns)
+                return None
+            return self._integrate(stamp_ns, T_ci_cj, gap, inference_ms, status)
+
+    def _start_chain(self, stamp_ns: int, status: str) -> OdometryResult:
+        self._has_previous = True
+        self._previous_stamp = stamp_ns
+        unknown = np.eye(6) * UNKNOWN_VARIANCE
+        return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
+
+    def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str) -> OdometryResult:
+        dt = (stamp_ns - self._previous_stamp) * 1e-9
+        T_bi_bj = self._T_base_cam @ T_ci_cj @ self._T_cam_base
+        sigma_t2 = self.model.pose_error_std["translation_m"] ** 2 * gap
+        sigma_r2 = self.model.pose_error_std["rotation_rad"] ** 2 * gap
+        ad = adjoint(self._T_base_cam)
+        sigma_pair = ad @ np.diag([sigma_t2] * 3 + [sigma_r2] * 3) @ ad.T
+        self._pose_cov = propagate_covariance(self._pose_cov, self._T_odom_base, T_bi_bj, sigma_pair)
+        self._T_odom_base = self._T_odom_base @ T_bi_bj
+        twist = np.concatenate((T_bi_bj[:3, :3].T @ T_bi_bj[:3, 3], so3_log(T_bi_bj[:3, :3]))) / dt
+        self._previous_stamp = stamp_ns
+        self.counters.pairs += 1
+        if gap > 1:
+            self.counters.bridged_gaps += 1
+        return self._result(stamp_ns, T_bi_bj, twist, sigma_pair / dt**2, status, gap, inference_ms)
+
+    def _result(self, stamp_ns, T_prev_curr, twist, twist_cov, status, gap, inference_ms) -> OdometryResult:
+        return OdometryResult(
+            stamp_ns=stamp_ns,
+            T_odom_base=self._T_odom_base.copy(),
+            T_odom_cam=self._T_odom_base @ self._T_base_cam,
+            T_prev_curr=T_prev_curr,
+            twist=twist,
+            pose_covariance=self._pose_cov.copy(),
+            twist_covariance=twist_cov,
+            status=status,
+            gap=gap,
+            inference_ms=inference_ms,
+        )
+
+    # -- calibration -------------------------------------------------------------------------------
+
+    def camera_info(self, width: int | None = None, height: int | None = None) -> tuple["CameraCalibration", float]:
+        """The learnt camera as a ``CameraCalibration`` (K, P, D, distortion_model) and the fit's RMS residual.
+
+        At ``width x height`` (default: the size of the frames seen, else the camera's native size).
+        Fitting the distortion model to the learnt MLP takes a moment, so results are cached per size.
+        Raises NocalError when the model carries no camera.
+        """
+        camera = self.model.camera
+        if camera is None:
+            raise NocalError(f"model {self.model.model_id} has no learnt camera to publish")
+        native = (int(camera.width), int(camera.height))
+        size = (int(width), int(height)) if width and height else (self.image_size or native)
+        with self._lock:
+            cached = self._calibration_cache.get(size)
+        if cached is not None:
+            return cached
+        calibration, residual = fit_calibration(camera, self.distortion_model)
+        if size != native:
+            if abs(size[0] / size[1] - native[0] / native[1]) > 1e-3:
+                raise FrameSizeError(
+                    f"model {self.model.model_id} learnt a {native[0]}x{native[1]} camera; "
+                    f"{size[0]}x{size[1]} images have another aspect ratio"
+                )
+            residual *= size[0] / native[0]
+            calibration = calibration.scaled(*size)
+        with self._lock:
+            self._calibration_cache[size] = (calibration, residual)
+        return calibration, residual
+
+
+def fit_calibration(camera: Any, distortion_model: str = "auto") -> tuple["CameraCalibration", float]:
+    """Fit a ROS distortion model to a learnt ``CameraModel``: ``(calibration, rms residual in pixels)``.
+
+    ``"auto"`` keeps plumb_bob (what most ROS consumers handle) unless rational_polynomial halves the
+    residual and plumb_bob is off by more than a tenth of a pixel.
+    """
+    if distortion_model != "auto":
+        return camera.to_calibration(distortion_model)
+    plumb = camera.to_calibration("plumb_bob")
+    if plumb[1] <= 0.1:
+        return plumb
+    rational = camera.to_calibration("rational_polynomial")
+    return rational if rational[1] < 0.5 * plumb[1] else plumb
+
+
+def _as_rgb(image: np.ndarray) -> np.ndarray:
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
+        raise FrameError(f"frames must be uint8 numpy images, got {type(image).__name__} {getattr(image, 'dtype', '')}")
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 2 or image.shape[1] < 2:
+        raise FrameError(f"frames must be (H, W, 3) RGB or (H, W) mono, got shape {image.shape}")
+    return image
+
+
+# --------------------------------------------------------------------------------------------------
+# the pose head runner: preallocated buffers, CUDA graphs where available
+# --------------------------------------------------------------------------------------------------
+
+
+class _PoseRunner:
+    """Runs the pose head on (previous, current) with no per-frame allocation.
+
+    Two input slots alternate: the current frame goes into one, the previous frame is in the other,
+    so advancing is a flip of an index rather than a copy. On CUDA a graph is captured for each
+    order of the slots, frames are staged in pinned host memory and uploaded without blocking, and
+    the uint8 -> float conversion runs on the device inside the graph.
+    """
+
+    def __init__(self, model: PoseModel, precision: str = "fp32", cuda_graphs: bool = True) -> None:
+        self.model = model
+        self.width, self.height = model.input_size
+        self.device = model.device
+        self.cuda = self.device.type == "cuda"
+        if precision not in ("fp32", "fp16", "bf16"):
+            raise NocalError(f"precision must be fp32, fp16 or bf16, got {precision!r}")
+        self.autocast_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(precision) if self.cuda else None
+        pin = self.cuda
+        self.host = [torch.empty((self.height, self.width, 3), dtype=torch.uint8, pin_memory=pin) for _ in range(2)]
+        self.frames = [torch.empty((self.height, self.width, 3), dtype=torch.uint8, device=self.device) for _ in range(2)]
+        self.inputs = [torch.empty((1, 3, self.height, self.width), dtype=torch.float32, device=self.device) for _ in range(2)]
+        self.current = 1  # slot of the newest frame
+        self.graphs: list[Any] | None = None
+        self.graph_outputs: list[torch.Tensor] = []
+        if self.cuda and cuda_graphs:
+            self._capture()
+
+    def _forward(self, previous: int, current: int) -> torch.Tensor:
+        for slot in (previous, current):
+            self.inputs[slot].copy_(self.frames[slot].permute(2, 0, 1).unsqueeze(0)).mul_(1.0 / 255.0)
+        with torch.autocast(self.device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
+            return self.model.predict_pose(self.inputs[previous], self.inputs[current]).float()
+
+    def _capture(self) -> None:
+        try:
+            for frame in self.frames:
+                frame.zero_()
+            stream = torch.cuda.Stream()
+            stream.wait_stream(torch.cuda.current_stream())
+            with torch.inference_mode(), torch.cuda.stream(stream):
+                for _ in range(3):  # warm-up on a side stream, as CUDA graph capture requires
+                    self._forward(0, 1)
+                    self._forward(1, 0)
+            torch.cuda.current_stream().wait_stream(stream)
+            graphs, outputs = [], []
+            for previous, current in ((1, 0), (0, 1)):  # graphs[current]
+                graph = torch.cuda.CUDAGraph()
+                with torch.inference_mode(), torch.cuda.graph(graph):
+                    outputs.append(self._forward(previous, current))
+                graphs.append(graph)
+            self.graphs, self.graph_outputs = graphs, outputs
+        except Exception as error:  # noqa: BLE001 - any capture failure leaves eager mode working
+            log.warning("odometry: CUDA graph capture failed (%s); running eagerly", error)
+            self.graphs = None
+
+    def load_frame(self, image: np.ndarray) -> int:
+        """Resize a native RGB frame into the next slot; returns the slot."""
+        slot = 1 - self.current
+        if image.shape[1] != self.width or image.shape[0] != self.height:
+            # INTER_AREA averages the pixels each output pixel covers, like the training data's resize.
+            cv2.resize(image, (self.width, self.height), dst=self.host[slot].numpy(), interpolation=cv2.INTER_AREA)
+        else:
+            self.host[slot].numpy()[...] = image
+        self.frames[slot].copy_(self.host[slot], non_blocking=self.cuda)
+        self.current = slot
+        return slot
+
+    def discard(self, slot: int) -> None:
+        """Forget the frame just loaded: the previous frame stays the reference for the next one."""
+        if slot == self.current:
+            self.current = 1 - slot
+
+    def run(self) -> np.ndarray:
+        """``T_ci_cj`` ``(4, 4)`` float64 for (previous slot, current slot)."""
+        previous, current = 1 - self.current, self.current
+        with torch.inference_mode():
+            if self.graphs is not None:
+                self.graphs[current].replay()
+                out = self.graph_outputs[current]
+            else:
+                out = self._forward(previous, current)
+            return out[0].double().cpu().numpy()

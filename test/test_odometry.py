@@ -1,0 +1,269 @@
+"""OdometryEstimator: integration against closed forms, and every frame-stream failure path.
+
+The integration tests inject a pose source that returns the true relative pose of a pair: frame k is
+an image filled with the value k, so the pose function reads the frame numbers back from the pixels
+(after the estimator's real resize and normalisation) and answers ``inv(T_w_ci) @ T_w_cj`` from the
+trajectory. What is tested is the estimator's own work: slot handling, composition with the mounting
+transform, twist, covariance, drops and resets.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nocal_ros.errors import NocalError
+from nocal_ros.geometry import invert_transform, make_transform, so3_exp, so3_log
+from nocal_ros.odometry import (
+    FrameError,
+    FrameSizeError,
+    OdometryEstimator,
+    PoseModel,
+    UNKNOWN_VARIANCE,
+    propagate_covariance,
+)
+
+PERIOD_NS = 100_000_000  # 10 Hz
+START_NS = 1_700_000_000_000_000_000
+
+
+def random_trajectory(n: int, seed: int = 0, rotation_step: float = 0.03) -> np.ndarray:
+    """``(n, 4, 4)`` camera poses ``T_w_c`` with a few cm and (by default) degrees between frames."""
+    rng = np.random.default_rng(seed)
+    poses = [make_transform(so3_exp(rng.normal(size=3)), rng.normal(size=3))]
+    for _ in range(n - 1):
+        step = make_transform(so3_exp(rng.normal(scale=rotation_step, size=3)), rng.normal(scale=0.05, size=3))
+        poses.append(poses[-1] @ step)
+    return np.stack(poses)
+
+
+class TrajectoryPoses:
+    """Pose source answering the true ``T_ci_cj`` for frames whose pixels hold their index."""
+
+    def __init__(self, T_w_c: np.ndarray, nan_frames: set[int] = frozenset()) -> None:
+        self.T_w_c = T_w_c
+        self.nan_frames = set(nan_frames)
+        self.calls: list[tuple[int, int]] = []
+
+    def __call__(self, image_i: torch.Tensor, image_j: torch.Tensor) -> torch.Tensor:
+        i = int(round(float(image_i.mean()) * 255))
+        j = int(round(float(image_j.mean()) * 255))
+        self.calls.append((i, j))
+        if j in self.nan_frames:
+            return torch.full((1, 4, 4), float("nan"))
+        T = invert_transform(self.T_w_c[i]) @ self.T_w_c[j]
+        return torch.from_numpy(T)[None].float()
+
+
+def frame(k: int, size=(64, 48)) -> np.ndarray:
+    return np.full((size[1], size[0], 3), k, dtype=np.uint8)
+
+
+def make_estimator(T_w_c, nan_frames=(), T_base_cam=None, **kwargs) -> tuple[OdometryEstimator, TrajectoryPoses]:
+    poses = TrajectoryPoses(T_w_c, set(nan_frames))
+    model = PoseModel(predict_pose=poses, input_size=(32, 24), max_gap=8, model_id="trajectory")
+    return OdometryEstimator(model, T_base_cam=T_base_cam, **kwargs), poses
+
+
+def expected_T_odom_base(T_w_c, k0, k, T_base_cam):
+    return T_base_cam @ invert_transform(T_w_c[k0]) @ T_w_c[k] @ invert_transform(T_base_cam)
+
+
+MOUNT = make_transform(so3_exp(np.array([0.3, -1.2, 0.5])), np.array([0.1, 0.02, 0.3]))
+
+
+def test_composes_known_relative_poses_exactly():
+    T_w_c = random_trajectory(30)
+    estimator, poses = make_estimator(T_w_c, T_base_cam=MOUNT)
+    results = [estimator.process(START_NS + k * PERIOD_NS, frame(k)) for k in range(30)]
+    assert results[0].status == "start" and np.allclose(results[0].T_odom_base, np.eye(4))
+    assert poses.calls == [(k - 1, k) for k in range(1, 30)]
+    for k, result in enumerate(results):
+        assert result.stamp_ns == START_NS + k * PERIOD_NS
+        np.testing.assert_allclose(result.T_odom_base, expected_T_odom_base(T_w_c, 0, k, MOUNT), atol=2e-5)
+        # The camera's pose in odom follows from the base pose and the mounting.
+        np.testing.assert_allclose(result.T_odom_cam, result.T_odom_base @ MOUNT, atol=1e-12)
+    assert all(r.status == "ok" and r.gap == 1 for r in results[1:])
+    assert estimator.counters.pairs == 29
+
+
+def test_twist_is_the_pair_motion_over_the_stamp_step_in_the_base_frame():
+    T_w_c = random_trajectory(3, seed=1)
+    estimator, _ = make_estimator(T_w_c, T_base_cam=MOUNT)
+    estimator.process(START_NS, frame(0))
+    result = estimator.process(START_NS + PERIOD_NS, frame(1))
+    T_b0_b1 = MOUNT @ invert_transform(T_w_c[0]) @ T_w_c[1] @ invert_transform(MOUNT)
+    dt = PERIOD_NS * 1e-9
+    # Closed form: a constant body twist over dt reproduces the pair, so integrating it for dt must
+    # land on T_b0_b1 (checked through the rotation and the displacement seen from frame 1).
+    np.testing.assert_allclose(so3_exp(result.twist[3:] * dt), T_b0_b1[:3, :3], atol=1e-5)
+    np.testing.assert_allclose(T_b0_b1[:3, :3] @ result.twist[:3] * dt, T_b0_b1[:3, 3], atol=1e-5)
+    assert np.allclose(estimator.process(START_NS, frame(0)).twist, 0)  # time reset: no motion known
+
+
+def test_gap_within_training_range_is_one_pair_and_longer_gap_resets_keeping_pose(caplog):
+    T_w_c = random_trajectory(40, seed=2)
+    estimator, poses = make_estimator(T_w_c)
+    stamp = lambda k: START_NS + k * PERIOD_NS  # noqa: E731
+    for k in range(5):
+        estimator.process(stamp(k), frame(k))
+    bridged = estimator.process(stamp(8), frame(8))  # frames 5..7 dropped: a gap of 4 frames
+    assert bridged.status == "ok" and bridged.gap == 4 and poses.calls[-1] == (4, 8)
+    np.testing.assert_allclose(bridged.T_odom_base, expected_T_odom_base(T_w_c, 0, 8, np.eye(4)), atol=2e-5)
+    assert estimator.counters.bridged_gaps == 1
+    # Its covariance grows by four frames' worth, not one.
+    one = estimator.process(stamp(9), frame(9)).twist_covariance * 1e-2
+    assert np.allclose(bridged.twist_covariance * (0.4**2), one * 4, rtol=1e-9)
+
+    held = estimator.process(stamp(9 + 12), frame(21))  # 12 frames missing: more than max_gap 8
+    assert held.status == "gap_reset" and held.gap == 0
+    assert "new pair chain" in caplog.text
+    np.testing.assert_allclose(held.T_odom_base, expected_T_odom_base(T_w_c, 0, 9, np.eye(4)), atol=2e-5)
+    assert np.all(np.diag(held.twist_covariance) == UNKNOWN_VARIANCE)
+    after = estimator.process(stamp(22), frame(22))
+    assert poses.calls[-1] == (21, 22)
+    # The chain restarts at frame 21 from the pose held at frame 9.
+    expected = expected_T_odom_base(T_w_c, 0, 9, np.eye(4)) @ expected_T_odom_base(T_w_c, 21, 22, np.eye(4))
+    np.testing.assert_allclose(after.T_odom_base, expected, atol=2e-5)
+    assert estimator.counters.gap_resets == 1
+
+
+def test_fixed_frame_period_decides_the_gap():
+    T_w_c = random_trajectory(20, seed=3)
+    estimator, _ = make_estimator(T_w_c, frame_period_s=0.05)  # the camera runs at 20 Hz
+    estimator.process(START_NS, frame(0))
+    assert estimator.process(START_NS + PERIOD_NS, frame(1)).gap == 2
+    assert estimator.process(START_NS + 6 * PERIOD_NS, frame(2)).status == "gap_reset"  # 10 frames
+
+
+def test_time_going_backwards_resets_to_identity():
+    T_w_c = random_trajectory(10, seed=4)
+    estimator, _ = make_estimator(T_w_c)
+    for k in range(5):
+        estimator.process(START_NS + k * PERIOD_NS, frame(k))
+    restart = estimator.process(START_NS, frame(5))
+    assert restart.status == "time_reset"
+    np.testing.assert_allclose(restart.T_odom_base, np.eye(4))
+    np.testing.assert_allclose(restart.pose_covariance, 0)
+    nxt = estimator.process(START_NS + PERIOD_NS, frame(6))
+    np.testing.assert_allclose(nxt.T_odom_base, expected_T_odom_base(T_w_c, 5, 6, np.eye(4)), atol=2e-5)
+    assert estimator.counters.time_resets == 1
+    assert estimator.process(START_NS + PERIOD_NS, frame(7)) is None  # a repeated stamp is skipped
+    assert estimator.counters.duplicate_stamps == 1
+
+
+def test_size_change_is_a_clear_error_that_loses_nothing():
+    T_w_c = random_trajectory(6, seed=5)
+    estimator, _ = make_estimator(T_w_c)
+    for k in range(3):
+        estimator.process(START_NS + k * PERIOD_NS, frame(k))
+    with pytest.raises(FrameSizeError, match=r"64x48 to 80x60"):
+        estimator.process(START_NS + 3 * PERIOD_NS, frame(3, size=(80, 60)))
+    assert isinstance(FrameSizeError("x"), NocalError)
+    result = estimator.process(START_NS + 4 * PERIOD_NS, frame(4))
+    assert result.status == "ok" and result.gap == 2
+    np.testing.assert_allclose(result.T_odom_base, expected_T_odom_base(T_w_c, 0, 4, np.eye(4)), atol=2e-5)
+    estimator.reset()  # accepts another size
+    assert estimator.process(START_NS + 5 * PERIOD_NS, frame(5, size=(80, 60))).status == "start"
+    assert estimator.counters.size_rejected == 1
+
+
+@pytest.mark.parametrize("bad", [np.zeros((48, 64, 3), np.float32), np.zeros((48, 64, 4), np.uint8), [[1, 2]]])
+def test_malformed_frames_are_rejected(bad):
+    estimator, _ = make_estimator(random_trajectory(2))
+    with pytest.raises(FrameError):
+        estimator.process(START_NS, bad)
+
+
+def test_mono_frames_are_accepted_and_an_encoding_change_restarts_the_chain():
+    T_w_c = random_trajectory(5, seed=6)
+    estimator, poses = make_estimator(T_w_c)
+    estimator.process(START_NS, frame(0)[:, :, 0], encoding="mono8")
+    assert estimator.process(START_NS + PERIOD_NS, frame(1)[:, :, 0], encoding="mono8").status == "ok"
+    changed = estimator.process(START_NS + 2 * PERIOD_NS, frame(2), encoding="rgb8")
+    assert changed.status == "encoding_reset" and poses.calls == [(0, 1)]
+    np.testing.assert_allclose(changed.T_odom_base, expected_T_odom_base(T_w_c, 0, 1, np.eye(4)), atol=2e-5)
+
+
+def test_non_finite_output_skips_the_frame_and_pairs_the_next_with_the_last_good_one(caplog):
+    T_w_c = random_trajectory(8, seed=7)
+    estimator, poses = make_estimator(T_w_c, nan_frames={3})
+    results = [estimator.process(START_NS + k * PERIOD_NS, frame(k)) for k in range(6)]
+    assert results[3] is None and "non-finite" in caplog.text
+    assert estimator.counters.nonfinite_skipped == 1
+    assert poses.calls[2:4] == [(2, 3), (2, 4)]
+    assert results[4].gap == 2
+    for k in (4, 5):
+        np.testing.assert_allclose(results[k].T_odom_base, expected_T_odom_base(T_w_c, 0, k, np.eye(4)), atol=2e-5)
+        assert np.isfinite(results[k].pose_covariance).all()
+
+
+def test_pose_covariance_matches_monte_carlo_propagation():
+    """First-order propagation against sampling the modelled pair noise through the composition."""
+    T_w_c = random_trajectory(4, seed=8, rotation_step=0.5)  # large turns: the Jacobians must be right
+    std = {"translation_m": 0.02, "rotation_rad": 0.01}
+    poses = TrajectoryPoses(T_w_c)
+    model = PoseModel(predict_pose=poses, input_size=(32, 24), pose_error_std=std)
+    estimator = OdometryEstimator(model, T_base_cam=MOUNT)
+    results = [estimator.process(START_NS + k * PERIOD_NS, frame(k)) for k in range(4)]
+    covariance = results[-1].pose_covariance
+    assert np.allclose(covariance, covariance.T) and np.linalg.eigvalsh(covariance).min() > 0
+
+    rng = np.random.default_rng(0)
+    samples = 100_000
+    pairs = [MOUNT @ invert_transform(T_w_c[k]) @ T_w_c[k + 1] @ invert_transform(MOUNT) for k in range(3)]
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = ad[3:, 3:] = MOUNT[:3, :3]
+    t = MOUNT[:3, 3]
+    ad[:3, 3:] = skew(t) @ MOUNT[:3, :3]
+    T = np.broadcast_to(np.eye(4), (samples, 4, 4))
+    for pair in pairs:
+        sigmas = [std["translation_m"]] * 3 + [std["rotation_rad"]] * 3
+        xi = rng.normal(scale=sigmas, size=(samples, 6)) @ ad.T  # camera-frame noise seen in the base frame
+        noise = np.zeros((samples, 4, 4))
+        noise[:, :3, :3] = rodrigues(xi[:, 3:])
+        noise[:, :3, 3] = xi[:, :3]
+        noise[:, 3, 3] = 1.0
+        T = T @ pair @ noise
+    mean = results[-1].T_odom_base
+    errors = np.concatenate(
+        (T[:, :3, 3] - mean[:3, 3], [so3_log(R @ mean[:3, :3].T) for R in T[:, :3, :3]]), axis=1
+    )
+    empirical = np.cov(errors.T)
+    # Every entry, relative to its scale sqrt(var_i var_j): the sampling error is about 1/sqrt(samples).
+    scale = np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
+    assert (np.abs(empirical - covariance) / scale).max() < 0.02
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def rodrigues(rotvecs: np.ndarray) -> np.ndarray:
+    """Batched so3_exp ``(N, 3) -> (N, 3, 3)``."""
+    angle = np.linalg.norm(rotvecs, axis=1)[:, None, None]
+    K = np.zeros((len(rotvecs), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -rotvecs[:, 2], rotvecs[:, 1], -rotvecs[:, 0]
+    K = (K - K.transpose(0, 2, 1)) / angle
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def test_propagation_of_a_zero_pair_keeps_the_covariance():
+    sigma = np.diag([1.0, 2, 3, 0.1, 0.2, 0.3])
+    out = propagate_covariance(sigma, np.eye(4), np.eye(4), np.zeros((6, 6)))
+    np.testing.assert_allclose(out, sigma)
+
+
+def test_reload_keeps_the_pose_and_restarts_the_chain():
+    T_w_c = random_trajectory(6, seed=9)
+    estimator, _ = make_estimator(T_w_c)
+    for k in range(3):
+        estimator.process(START_NS + k * PERIOD_NS, frame(k))
+    poses = TrajectoryPoses(T_w_c)
+    assert estimator.reload(PoseModel(predict_pose=poses, input_size=(16, 12), model_id="other")) == "other"
+    restart = estimator.process(START_NS + 3 * PERIOD_NS, frame(3))
+    assert restart.status == "start"
+    np.testing.assert_allclose(restart.T_odom_base, expected_T_odom_base(T_w_c, 0, 2, np.eye(4)), atol=2e-5)
+    estimator.process(START_NS + 4 * PERIOD_NS, frame(4))
+    assert poses.calls == [(3, 4)] and estimator.model_id == "other"
