@@ -1,0 +1,33 @@
+"""Launch the trainer node with config/trainer.yaml (override with params_file:=...).
+
+    ros2 launch nocal_ros trainer.launch.py output_store:=/data/models
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_params = os.path.join(get_package_share_directory("nocal_ros"), "config", "trainer.yaml")
+    params_file = LaunchConfiguration("params_file")
+    output_store = LaunchConfiguration("output_store")
+    reload_service = LaunchConfiguration("reload_service")
+    return LaunchDescription([
+        DeclareLaunchArgument("params_file", default_value=default_params, description="trainer parameters"),
+        DeclareLaunchArgument("output_store", default_value=os.path.expanduser("~/.ros/nocal_ros/models"),
+                              description="model store shared with the odometry node's model_path"),
+        DeclareLaunchArgument("reload_service", default_value="/odometry_node/reload_model",
+                              description="odometry node's reload service (empty: do not call)"),
+        Node(
+            package="nocal_ros",
+            executable="trainer_node",
+            name="trainer_node",
+            output="screen",
+            parameters=[params_file, {"output_store": output_store, "reload_service": reload_service}],
+        ),
+    ])
