@@ -190,20 +190,27 @@ def transform_msg_to_matrix(transform: Any) -> np.ndarray:
 
 
 def camera_info_to_calibration(msg: Any):
-    """``sensor_msgs/CameraInfo`` (ROS 2 or ROS 1 field names) -> :class:`nocal_ros.lens.CameraCalibration`."""
+    """``sensor_msgs/CameraInfo`` (ROS 2 or ROS 1 field names) -> :class:`nocal_ros.lens.CameraCalibration`.
+
+    CameraInfo has no camera name; the header's frame id stands in for it.
+    """
     from nocal_ros.lens import CameraCalibration
 
     k = getattr(msg, "k", None)
     d = getattr(msg, "d", None)
     k = np.asarray(msg.K if k is None else k, dtype=np.float64).reshape(3, 3)
     d = np.asarray(msg.D if d is None else d, dtype=np.float64).reshape(-1)
-    return CameraCalibration(
-        width=int(msg.width),
-        height=int(msg.height),
-        K=k.copy(),
-        D=d.copy(),
-        distortion_model=str(msg.distortion_model),
-    )
+    try:
+        return CameraCalibration(
+            width=int(msg.width),
+            height=int(msg.height),
+            K=k.copy(),
+            D=d.copy(),
+            distortion_model=str(msg.distortion_model),
+            camera_name=str(msg.header.frame_id) or "camera",
+        )
+    except ValueError as error:  # e.g. the all-zero K that uncalibrated camera drivers publish
+        raise BagError(f"CameraInfo is not a usable calibration: {error}") from None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -305,6 +312,23 @@ class BagWriter:
         elif connection.msgtype != msgtype:
             raise BagError(f"{self.path}: topic {topic} holds {connection.msgtype}, cannot also write {msgtype}")
         return connection
+
+    @property
+    def types(self) -> Any:
+        """Message classes of this bag's type store, for :meth:`write_message`."""
+        return self._types
+
+    def declare_topic(self, topic: str, msgtype: str) -> None:
+        """Record a topic even if no message is written to it (as ``ros2 bag record`` does)."""
+        self._connection(topic, msgtype)
+
+    def write_message(self, topic: str, stamp_ns: int, msg: Any) -> None:
+        """Write any message built from :attr:`types` (an escape hatch for types without a helper)."""
+        self._write(topic, stamp_ns, msg)
+
+    def header(self, stamp_ns: int, frame_id: str) -> Any:
+        """A ``std_msgs/Header`` for this bag's ROS version."""
+        return self._header(stamp_ns, frame_id)
 
     def _write(self, topic: str, stamp_ns: int, msg: Any) -> None:
         connection = self._connection(topic, msg.__msgtype__)
@@ -482,3 +506,366 @@ def write_sequence(sequence: FrameSequence, path: str | Path, storage: str = "mc
             if sequence.calibration is not None:
                 writer.write_camera_info(CAMERA_INFO_TOPIC, stamp, CAMERA_FRAME, sequence.calibration)
     return path
+
+
+# --------------------------------------------------------------------------------------------------
+# reading
+# --------------------------------------------------------------------------------------------------
+
+
+class PoseTrack:
+    """Stamped poses of one frame pair, interpolated to query stamps without extrapolating.
+
+    A query at a sample's stamp returns that sample. Between two samples the pose is interpolated
+    (slerp rotation, linear translation) only when both lie within the tolerance of the query;
+    otherwise, and before the first or after the last sample, there is no pose (None).
+    """
+
+    def __init__(self) -> None:
+        self._samples: list[tuple[int, np.ndarray]] = []
+        self._stamps: list[int] | None = None
+        self._poses: list[np.ndarray] = []
+
+    def add(self, stamp_ns: int, T: np.ndarray) -> None:
+        self._samples.append((int(stamp_ns), T))
+        self._stamps = None
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def _sorted(self) -> None:
+        if self._stamps is None:
+            by_stamp: dict[int, np.ndarray] = {}
+            for stamp, T in sorted(self._samples, key=lambda sample: sample[0]):
+                by_stamp.setdefault(stamp, T)
+            self._stamps = list(by_stamp)
+            self._poses = list(by_stamp.values())
+
+    def at(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
+        self._sorted()
+        stamps = self._stamps
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i < len(stamps) and stamps[i] == stamp_ns:
+            return self._poses[i]
+        if i == 0 or i == len(stamps):
+            return None
+        t0, t1 = stamps[i - 1], stamps[i]
+        if stamp_ns - t0 > tolerance_ns or t1 - stamp_ns > tolerance_ns:
+            return None
+        return interpolate_transform(self._poses[i - 1], self._poses[i], (stamp_ns - t0) / (t1 - t0))
+
+
+class TfBuffer:
+    """TF edges from ``/tf`` (interpolated per edge) and ``/tf_static`` (constant), and chains between frames."""
+
+    def __init__(self) -> None:
+        self.dynamic: dict[tuple[str, str], PoseTrack] = {}
+        self.static: dict[tuple[str, str], np.ndarray] = {}
+        self._parent_of: dict[str, str] = {}
+
+    def add(self, msg: Any, is_static: bool) -> None:
+        for stamped in msg.transforms:
+            parent = stamped.header.frame_id.lstrip("/")
+            child = stamped.child_frame_id.lstrip("/")
+            T = transform_msg_to_matrix(stamped.transform)
+            self._parent_of.setdefault(child, parent)
+            if is_static:
+                self.static[(parent, child)] = T
+            else:
+                self.dynamic.setdefault((parent, child), PoseTrack()).add(stamp_to_ns(stamped.header.stamp), T)
+
+    def edges(self) -> list[str]:
+        return sorted(f"{p}->{c}" for p, c in {**self.static, **dict.fromkeys(self.dynamic)})
+
+    def _path_to_root(self, frame: str) -> list[str]:
+        path = [frame]
+        while path[-1] in self._parent_of and self._parent_of[path[-1]] not in path:
+            path.append(self._parent_of[path[-1]])
+        return path
+
+    def chain(self, parent: str, child: str) -> tuple[list[tuple[str, str]], list[tuple[str, str]]] | None:
+        """Edges from a common ancestor down to ``parent`` and down to ``child``, or None if unconnected."""
+        up_child = self._path_to_root(child)
+        up_parent = self._path_to_root(parent)
+        common = next((frame for frame in up_child if frame in up_parent), None)
+        if common is None:
+            return None
+
+        def edges_below(path: list[str]) -> list[tuple[str, str]]:
+            down = path[: path.index(common) + 1][::-1]
+            return list(zip(down[:-1], down[1:]))
+
+        return edges_below(up_parent), edges_below(up_child)
+
+    def _compose(self, edges: list[tuple[str, str]], stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
+        T = np.eye(4)
+        for edge in edges:
+            if edge in self.static:
+                T = T @ self.static[edge]
+                continue
+            sample = self.dynamic[edge].at(stamp_ns, tolerance_ns)
+            if sample is None:
+                return None
+            T = T @ sample
+        return T
+
+    def lookup(self, chain, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
+        """``T_parent_child`` at a stamp along a :meth:`chain`, or None where an edge has no pose."""
+        to_parent, to_child = chain
+        T_a_parent = self._compose(to_parent, stamp_ns, tolerance_ns)
+        T_a_child = self._compose(to_child, stamp_ns, tolerance_ns)
+        if T_a_parent is None or T_a_child is None:
+            return None
+        return invert_transform(T_a_parent) @ T_a_child
+
+
+def _check_path(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"{path}: no such bag (file or directory does not exist)")
+    return path
+
+
+@contextlib.contextmanager
+def _open_bag(path: Path) -> Iterator[Any]:
+    """AnyReader over one bag; whatever rosbags (or sqlite, or the OS) raises becomes a BagError."""
+    from rosbags.highlevel import AnyReader
+
+    try:
+        with AnyReader([path], default_typestore=_typestore()) as reader:
+            yield reader
+    except NocalError:
+        raise
+    except Exception as error:  # rosbags raises many kinds for corrupt and truncated files
+        raise BagError(
+            f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {type(error).__name__}: {error}"
+        ) from error
+
+
+def _topic_list(reader: Any) -> str:
+    return ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(reader.topics.items())) or "none"
+
+
+def _image_connections(reader: Any, path: Path, image_topic: str) -> list:
+    info = reader.topics.get(image_topic)
+    if info is None:
+        raise BagError(f"{path}: no image topic {image_topic!r}; topics in the bag: {_topic_list(reader)}")
+    if info.msgtype not in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE):
+        raise BagError(f"{path}: topic {image_topic} holds {info.msgtype}, not sensor_msgs/Image or CompressedImage")
+    return [c for c in reader.connections if c.topic == image_topic]
+
+
+def _resize_size(resize: Sequence[int] | None) -> tuple[int, int] | None:
+    if resize is None:
+        return None
+    width, height = (int(v) for v in resize)
+    if width <= 0 or height <= 0:
+        raise BagError(f"resize must be a positive (width, height), got {tuple(resize)}")
+    return width, height
+
+
+class _FrameChecker:
+    """Decodes one image topic's messages, resizes them, and refuses a size change mid-bag."""
+
+    def __init__(self, path: Path, topic: str, resize: tuple[int, int] | None) -> None:
+        self.path, self.topic, self.resize = path, topic, resize
+        self.native_size: tuple[int, int] | None = None
+        self.count = 0
+
+    def __call__(self, msg: Any, msgtype: str, stamp_ns: int) -> np.ndarray:
+        try:
+            rgb = decode_any_image(msg, msgtype)
+        except BagError as error:
+            raise BagError(f"{self.path}: {self.topic} message {self.count} (stamp {stamp_ns} ns): {error}") from None
+        size = (rgb.shape[1], rgb.shape[0])
+        if self.native_size is None:
+            self.native_size = size
+        elif size != self.native_size:
+            raise BagError(
+                f"{self.path}: image size changes mid-bag on {self.topic}: message {self.count} (stamp {stamp_ns} ns) "
+                f"is {size[0]}x{size[1]}, earlier images are {self.native_size[0]}x{self.native_size[1]}"
+            )
+        self.count += 1
+        if self.resize is not None and size != self.resize:
+            rgb = cv2.resize(rgb, self.resize, interpolation=cv2.INTER_AREA)
+        return rgb
+
+
+def _header_stamp(msg: Any, bag_stamp_ns: int) -> int:
+    """The sensor stamp of a message; its bag receive time where the header stamp was left at zero."""
+    stamp = stamp_to_ns(msg.header.stamp)
+    return stamp if stamp > 0 else int(bag_stamp_ns)
+
+
+def _pose_from_msg(msg: Any, msgtype: str) -> np.ndarray:
+    if msgtype == POSE_STAMPED_TYPE:
+        return pose_msg_to_matrix(msg.pose)
+    if msgtype == POSE_COV_STAMPED_TYPE:
+        return pose_msg_to_matrix(msg.pose.pose)
+    return transform_msg_to_matrix(msg.transform)
+
+
+def iter_images(
+    path: str | Path, image_topic: str = IMAGE_TOPIC, resize: Sequence[int] | None = None
+) -> Iterator[tuple[int, str, np.ndarray]]:
+    """Stream ``(stamp_ns, frame_id, rgb uint8 (H, W, 3))`` from a bag's image topic in recording order.
+
+    Memory stays at one image whatever the bag's length (offline odometry replays long bags).
+    """
+    path = _check_path(path)
+    size = _resize_size(resize)
+    with _open_bag(path) as reader:
+        connections = _image_connections(reader, path, image_topic)
+        decode = _FrameChecker(path, image_topic, size)
+        for connection, bag_stamp, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            stamp = _header_stamp(msg, bag_stamp)
+            yield stamp, str(msg.header.frame_id), decode(msg, connection.msgtype, stamp)
+        if decode.count == 0:
+            raise BagError(f"{path}: topic {image_topic} has no messages; no frames to read")
+
+
+def read_sequence(
+    path: str | Path,
+    image_topic: str = IMAGE_TOPIC,
+    pose_topic: str | None = ARM_POSE_TOPIC,
+    pose_source: str = "auto",
+    tf_parent: str = "base",
+    tf_child: str = "tool",
+    T_tool_cam: np.ndarray | None = None,
+    tolerance_s: float = 0.02,
+    gt_topic: str | None = GT_POSE_TOPIC,
+    camera_info_topic: str | None = CAMERA_INFO_TOPIC,
+    resize: Sequence[int] | None = None,
+    max_frames: int | None = None,
+) -> FrameSequence:
+    """Read a bag (rosbag2 mcap/sqlite3 directory or file, or ROS 1 ``.bag``) into a FrameSequence.
+
+    Args:
+        image_topic: ``sensor_msgs/Image`` or ``CompressedImage`` topic.
+        pose_topic: arm poses ``T_base_tool`` (PoseStamped, PoseWithCovarianceStamped or TransformStamped).
+        pose_source: ``"pose"`` (``pose_topic``), ``"tf"`` (``tf_parent -> tf_child`` from ``/tf`` and
+            ``/tf_static``, through intermediate frames if needed), ``"none"``, or ``"auto"``: the pose
+            topic if the bag has it, else TF if it connects the two frames, else none.
+        T_tool_cam: static hand-eye transform; arm poses become ``T_base_cam = T_base_tool @ T_tool_cam``.
+        tolerance_s: an image gets a pose only from samples within this time of its stamp (see
+            :class:`PoseTrack`); other images are unlabelled (NaN).
+        gt_topic, camera_info_topic: ground-truth camera poses and calibration, read when present.
+        resize: ``(width, height)`` to resize images to (``cv2.INTER_AREA``); the calibration is
+            scaled to match and ``extras["native_size"]`` keeps the recorded size.
+        max_frames: keep only the first images.
+
+    Stamps are the images' header stamps, sorted; frames with a repeated stamp are dropped.
+    """
+    path = _check_path(path)
+    size = _resize_size(resize)
+    if pose_source not in ("auto", "pose", "tf", "none"):
+        raise BagError(f"{path}: pose_source must be auto, pose, tf or none, not {pose_source!r}")
+    T_tool_cam = np.eye(4) if T_tool_cam is None else np.asarray(T_tool_cam, dtype=np.float64)
+    if T_tool_cam.shape != (4, 4) or not np.isfinite(T_tool_cam).all():
+        raise BagError(f"{path}: T_tool_cam must be a finite 4x4 transform")
+    tolerance_ns = int(round(tolerance_s * 1e9))
+    limit = None if max_frames is None else int(max_frames)
+
+    images: list[np.ndarray] = []
+    stamps: list[int] = []
+    arm = PoseTrack()
+    ground_truth = PoseTrack()
+    tf = TfBuffer()
+    camera_info = None
+    with _open_bag(path) as reader:
+        topics = reader.topics
+        image_connections = _image_connections(reader, path, image_topic)
+        if pose_source == "pose" and pose_topic not in topics:
+            raise BagError(f"{path}: no arm pose topic {pose_topic!r}; topics in the bag: {_topic_list(reader)}")
+        use_pose_topic = pose_source in ("pose", "auto") and pose_topic in topics
+        if use_pose_topic and topics[pose_topic].msgtype not in POSE_TYPES:
+            raise BagError(f"{path}: arm pose topic {pose_topic} holds {topics[pose_topic].msgtype}, not one of {', '.join(POSE_TYPES)}")
+        use_tf = (pose_source == "tf") or (pose_source == "auto" and not use_pose_topic)
+        wanted = {image_topic}
+        if use_pose_topic:
+            wanted.add(pose_topic)
+        if use_tf:
+            wanted.update(topic for topic in TF_TOPICS if topic in topics and topics[topic].msgtype == TF_TYPE)
+        if gt_topic in topics and topics[gt_topic].msgtype in POSE_TYPES:
+            wanted.add(gt_topic)
+        if camera_info_topic in topics and topics[camera_info_topic].msgtype == CAMERA_INFO_TYPE:
+            wanted.add(camera_info_topic)
+        connections = [c for c in reader.connections if c.topic in wanted]
+        decode = _FrameChecker(path, image_topic, size)
+        seen_images = 0
+        for connection, bag_stamp, raw in reader.messages(connections=connections):
+            topic, msgtype = connection.topic, connection.msgtype
+            if topic == image_topic:
+                seen_images += 1
+                if limit is not None and seen_images > limit:
+                    continue  # keep going only for poses that bracket the last kept image
+                msg = reader.deserialize(raw, msgtype)
+                stamp = _header_stamp(msg, bag_stamp)
+                images.append(decode(msg, msgtype, stamp))
+                stamps.append(stamp)
+            elif topic == camera_info_topic:
+                if camera_info is None:
+                    camera_info = reader.deserialize(raw, msgtype)
+            elif topic in TF_TOPICS and use_tf:
+                tf.add(reader.deserialize(raw, msgtype), is_static=topic == "/tf_static")
+            else:
+                msg = reader.deserialize(raw, msgtype)
+                track = arm if (use_pose_topic and topic == pose_topic) else ground_truth
+                track.add(_header_stamp(msg, bag_stamp), _pose_from_msg(msg, msgtype))
+        if not images:
+            raise BagError(f"{path}: no usable frames: topic {image_topic} has no messages")
+
+    tf_chain = tf.chain(tf_parent, tf_child) if use_tf else None
+    if pose_source == "tf" and tf_chain is None:
+        raise BagError(
+            f"{path}: TF does not connect {tf_parent!r} to {tf_child!r}; TF edges in the bag: {', '.join(tf.edges()) or 'none'}"
+        )
+
+    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    stamps_sorted = np.asarray(stamps, dtype=np.int64)[order]
+    keep = np.ones(len(order), dtype=bool)
+    keep[1:] = np.diff(stamps_sorted) > 0
+    order, stamps_sorted = order[keep], stamps_sorted[keep]
+
+    arm_poses = np.full((len(order), 4, 4), np.nan)
+    gt_poses = np.full((len(order), 4, 4), np.nan) if len(ground_truth) else None
+    for row, stamp in enumerate(stamps_sorted.tolist()):
+        if use_pose_topic:
+            T_base_tool = arm.at(stamp, tolerance_ns)
+        elif tf_chain is not None:
+            T_base_tool = tf.lookup(tf_chain, stamp, tolerance_ns)
+        else:
+            T_base_tool = None
+        if T_base_tool is not None:
+            arm_poses[row] = T_base_tool @ T_tool_cam
+        if gt_poses is not None:
+            T_w_cam = ground_truth.at(stamp, tolerance_ns)
+            if T_w_cam is not None:
+                gt_poses[row] = T_w_cam
+
+    calibration = None
+    native_size = decode.native_size
+    extras = {"native_size": native_size, "dropped_repeated_stamps": int((~keep).sum())}
+    if camera_info is not None:
+        try:
+            calibration = camera_info_to_calibration(camera_info)
+        except BagError as error:  # an unknown camera is what nocal is for, not a reason to refuse the bag
+            extras["camera_info_problem"] = f"{camera_info_topic}: {error}"
+        if calibration is not None and size is not None and size != native_size:
+            calibration = calibration.scaled(*size)
+    if use_pose_topic:
+        extras["pose_source"] = f"topic {pose_topic}"
+    elif tf_chain is not None:
+        extras["pose_source"] = f"tf {tf_parent}->{tf_child}"
+    else:
+        extras["pose_source"] = "none"
+    return FrameSequence(
+        images=np.stack([images[i] for i in order]),
+        stamps_ns=stamps_sorted,
+        arm_poses=arm_poses,
+        ground_truth=gt_poses,
+        calibration=calibration,
+        name=str(path),
+        extras=extras,
+    )
