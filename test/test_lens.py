@@ -1,0 +1,147 @@
+"""Parametric lens models against OpenCV, their exact inverses, and the YAML format."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from nocal_ros.errors import ConfigError
+from nocal_ros.lens import CameraCalibration, pixel_grid, scale_intrinsics
+
+K = np.array([[420.0, 0.0, 322.5], [0.0, 415.0, 236.25], [0.0, 0.0, 1.0]])
+CAMERAS = {
+    "plumb_bob": CameraCalibration(640, 480, K, [-0.28, 0.09, 0.0012, -0.0008, -0.012], "plumb_bob"),
+    "rational_polynomial": CameraCalibration(
+        640, 480, K, [0.4, -0.05, 0.001, -0.002, 0.01, 0.7, 0.02, 0.01], "rational_polynomial"
+    ),
+    "equidistant": CameraCalibration(640, 480, K, [-0.02, 0.01, -0.004, 0.001], "equidistant"),
+}
+
+
+def random_points(rng, n=500, half_angle_deg=50.0):
+    """Points in front of the camera inside a cone, at 0.5..10 m."""
+    angle = np.radians(half_angle_deg) * np.sqrt(rng.uniform(0, 1, n))
+    azimuth = rng.uniform(-np.pi, np.pi, n)
+    rays = np.stack([np.sin(angle) * np.cos(azimuth), np.sin(angle) * np.sin(azimuth), np.cos(angle)], 1)
+    return rays * rng.uniform(0.5, 10.0, (n, 1))
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_projection_matches_opencv(model):
+    camera = CAMERAS[model]
+    points = random_points(np.random.default_rng(1))
+    if model == "equidistant":
+        expected, _ = cv2.fisheye.projectPoints(points[:, None, :], np.zeros(3), np.zeros(3), camera.K, camera.D)
+    else:
+        expected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), camera.K, camera.D)
+    pixels = camera.project(points)
+    assert np.abs(pixels - expected.reshape(-1, 2)).max() < 1e-6
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_unproject_inverts_project(model):
+    camera = CAMERAS[model]
+    points = random_points(np.random.default_rng(2))
+    rays = camera.unproject(camera.project(points))
+    expected = points / np.linalg.norm(points, axis=1, keepdims=True)
+    assert np.abs(rays - expected).max() < 1e-10
+    # and the other way round, over every pixel of the image
+    pixels = pixel_grid(camera.width, camera.height).reshape(-1, 2)
+    reprojected = camera.project(camera.unproject(pixels))
+    assert np.abs(reprojected - pixels).max() < 1e-8
+
+
+def test_undistorted_normalised_matches_opencv_undistort_points():
+    camera = CAMERAS["plumb_bob"]
+    pixels = np.random.default_rng(3).uniform([0, 0], [639, 479], (200, 2))
+    ours = camera.undistorted_normalised(pixels)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    theirs = cv2.undistortPoints(pixels[:, None, :], camera.K, camera.D, None, None, None, criteria).reshape(-1, 2)
+    assert np.abs(ours - theirs).max() < 1e-8
+
+
+def test_beyond_the_fold_is_nan_not_a_wrong_ray():
+    # k1 = -0.5: r_d = r (1 - 0.5 r^2) peaks at r_d = 0.5443 (r = 0.8165); nothing images beyond.
+    camera = CameraCalibration.pinhole(640, 480, fx=300.0, D=[-0.5, 0, 0, 0, 0])
+    pixels = pixel_grid(640, 480).reshape(-1, 2)
+    radius = np.linalg.norm(camera.distorted_normalised(pixels), axis=1)
+    rays = camera.unproject(pixels)
+    valid = np.isfinite(rays).all(1)
+    assert valid[radius < 0.544].all() and not valid[radius > 0.5444].any()
+    assert np.abs(camera.project(rays[valid]) - pixels[valid]).max() < 1e-8
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_torch_matches_numpy_and_is_differentiable(model):
+    camera = CAMERAS[model]
+    points = random_points(np.random.default_rng(4), n=50)
+    points_t = torch.tensor(points, requires_grad=True)
+    pixels_t = camera.project(points_t)
+    assert torch.allclose(pixels_t, torch.from_numpy(camera.project(points)), atol=1e-9)
+    pixels_t.sum().backward()
+    assert torch.isfinite(points_t.grad).all() and points_t.grad.abs().sum() > 0
+    rays_t = camera.unproject(torch.from_numpy(camera.project(points)))
+    assert torch.allclose(rays_t, torch.from_numpy(points / np.linalg.norm(points, axis=1, keepdims=True)), atol=1e-10)
+
+
+def test_scale_intrinsics_keeps_pixel_areas_aligned():
+    # Downsampling 2x: the centre of the top-left 2x2 block (u = 0.5) becomes pixel 0.
+    scaled = scale_intrinsics(K, 0.5, 0.5)
+    assert scaled[0, 0] == pytest.approx(210.0) and scaled[0, 2] == pytest.approx((322.5 + 0.5) * 0.5 - 0.5)
+    camera = CAMERAS["rational_polynomial"]
+    small = camera.scaled(160, 120)
+    points = random_points(np.random.default_rng(5), n=20)
+    # same field of view: the 4x smaller image sees each point at (u + 0.5) / 4 - 0.5
+    assert np.allclose(small.project(points), (camera.project(points) + 0.5) / 4 - 0.5, atol=1e-9)
+
+
+def test_pixel_rays_table_shape_and_subpixels():
+    camera = CAMERAS["plumb_bob"].scaled(16, 12)
+    table = camera.pixel_rays(supersample=2)
+    assert table.shape == (12, 16, 4, 3)
+    assert np.allclose(np.linalg.norm(table, axis=-1), 1.0)
+    # the mean subpixel of pixel (3, 5) projects to the pixel centre (3, 5) to first order
+    centre_samples = camera.project(table[5, 3])
+    assert np.allclose(centre_samples.mean(0), [3, 5], atol=1e-6)
+    assert np.allclose(np.sort(centre_samples[:, 0]), [2.75, 2.75, 3.25, 3.25], atol=1e-9)
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_yaml_round_trip(tmp_path, model):
+    camera = CAMERAS[model]
+    path = tmp_path / "camera.yaml"
+    camera.save(path)
+    loaded = CameraCalibration.load(path)
+    assert loaded == camera
+    assert "camera_matrix:" in path.read_text() and "projection_matrix:" in path.read_text()
+
+
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("image_width: 640\nimage_height: 480\n", "camera_matrix"),
+        ("image_width: [oops\n", "not valid YAML"),
+        ("- 1\n- 2\n", "mapping"),
+        ("image_width: -3\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, data: [1,0,0,0,1,0,0,0,1]}\n", "image_width"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {rows: 3, cols: 3, data: [1,0,0,0,1]}\n", "camera_matrix"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {data: [.nan,0,0,0,1,0,0,0,1]}\n", "non-finite"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {data: [0,0,0,0,1,0,0,0,1]}\n", "focal"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {data: [50,0,30,0,50,20,0,0,1]}\n"
+         "distortion_model: kannala\n", "kannala"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {data: [50,0,30,0,50,20,0,0,1]}\n"
+         "distortion_model: equidistant\ndistortion_coefficients: {data: [0.1, 0.2]}\n", "4 distortion"),
+        ("image_width: 64\nimage_height: 48\ncamera_matrix: {data: [50,0,30,0,50,20,0,0,1]}\n"
+         "distortion_coefficients: {data: [a, b, c, d, e]}\n", "numbers"),
+    ],
+)
+def test_malformed_yaml_raises_config_error_naming_the_file(tmp_path, text, problem):
+    path = tmp_path / "bad_camera.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=problem) as info:
+        CameraCalibration.load(path)
+    assert "bad_camera.yaml" in str(info.value)
+
+
+def test_missing_file_raises_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        CameraCalibration.load(tmp_path / "nope.yaml")
