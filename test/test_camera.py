@@ -132,3 +132,84 @@ def test_bad_arguments_are_refused():
         CameraModel(10, 10).set_stage("distortion")
     with pytest.raises(ValueError):
         CameraModel(10, 10).rays(torch.eye(4), 10, 10)
+
+
+# --------------------------------------------------------------------------------------------------
+# exports: parametric fit, dense maps, YAML
+# --------------------------------------------------------------------------------------------------
+
+from nocal_ros.camera import fit_distortion_coefficients  # noqa: E402
+from nocal_ros.lens import CameraCalibration  # noqa: E402
+
+TRUE_K = np.array([[500.0, 0, 322.0], [0, 505.0, 238.0], [0, 0, 1]])
+TRUE_D = np.array([-0.1, 0.02, 0.001, -0.0005, 0.0])
+
+
+@pytest.fixture(scope="module")
+def lens_and_camera():
+    calibration = CameraCalibration(640, 480, TRUE_K, TRUE_D, "plumb_bob", "true")
+    return calibration, CameraModel.from_calibration(calibration)
+
+
+def image_pixels(width: int, height: int, step: int = 1) -> np.ndarray:
+    vv, uu = np.mgrid[0:height:step, 0:width:step]
+    return np.stack((uu.ravel(), vv.ravel()), -1).astype(np.float64)
+
+
+def test_least_squares_recovers_exact_plumb_bob_coefficients():
+    D = np.array([-0.21, 0.05, 0.002, -0.001, 0.01])
+    calibration = CameraCalibration(640, 480, TRUE_K, D)
+    pixels = image_pixels(640, 480, step=20)
+    undistorted = calibration.undistorted_normalised(pixels)
+    distorted = calibration.distorted_normalised(pixels)
+    np.testing.assert_allclose(fit_distortion_coefficients(undistorted, distorted, "plumb_bob", 500.0, 505.0), D, atol=1e-9)
+    # The rational model contains plumb_bob: it must reproduce this lens to far below a pixel.
+    rational = fit_distortion_coefficients(undistorted, distorted, "rational_polynomial", 500.0, 505.0)
+    reprojected = CameraCalibration(640, 480, TRUE_K, rational, "rational_polynomial").project(
+        np.concatenate((undistorted, np.ones((len(undistorted), 1))), 1)
+    )
+    assert np.abs(reprojected - pixels).max() < 0.05
+
+
+def test_camera_from_calibration_reproduces_the_lens(lens_and_camera):
+    calibration, camera = lens_and_camera
+    learnt = camera.undistortion_map().reshape(-1, 2)
+    truth = calibration.undistorted_normalised(image_pixels(640, 480))
+    shift = np.linalg.norm(learnt - truth, axis=1)
+    # An 8-unit MLP is not exact; measured mean 4e-4 (0.2 px at f = 500), max about 3.5e-3.
+    assert shift.mean() < 1e-3 and shift.max() < 5e-3
+
+
+def test_parametric_fit_recovers_the_lens_and_round_trips_through_yaml(lens_and_camera, tmp_path):
+    calibration, camera = lens_and_camera
+    fit = camera.fit_parametric("plumb_bob", camera_name="fitted")
+    D = fit.calibration.D
+    assert D[0] == pytest.approx(TRUE_D[0], abs=0.01)
+    np.testing.assert_allclose(D[2:4], TRUE_D[2:4], atol=2e-4)
+    np.testing.assert_allclose(fit.calibration.K, TRUE_K, atol=1e-3)
+    assert fit.rms_px < 0.5 and fit.rms_normalised == pytest.approx(fit.rms_px / 500, rel=0.05)
+    # What matters to a user: the fitted lens images the world where the true lens does.
+    rays = calibration.unproject(image_pixels(640, 480, step=8))
+    error = np.linalg.norm(fit.calibration.project(rays) - calibration.project(rays), axis=1)
+    assert np.sqrt(np.mean(error**2)) < 0.6
+    rational, rms = camera.to_calibration("rational_polynomial")
+    assert rational.distortion_model == "rational_polynomial" and rms <= fit.rms_px + 1e-6
+    assert np.abs(rational.D).max() < 100  # the ridge keeps the ambiguous ratio small
+
+    path = tmp_path / "camera.yaml"
+    fit.calibration.save(path)
+    loaded = CameraCalibration.load(path)
+    assert loaded == fit.calibration and loaded.camera_name == "fitted"
+
+
+def test_rectification_maps_match_opencv(lens_and_camera):
+    calibration, camera = lens_and_camera
+    map_x, map_y = camera.rectification_maps()
+    assert map_x.shape == (480, 640) and map_x.dtype == np.float32
+    ref_x, ref_y = cv2.initUndistortRectifyMap(TRUE_K, TRUE_D, None, camera.K(), (640, 480), cv2.CV_32FC1)
+    inside = (ref_x >= 0) & (ref_x <= 639) & (ref_y >= 0) & (ref_y <= 479)
+    error = np.hypot(map_x - ref_x, map_y - ref_y)[inside]
+    assert error.mean() < 0.5 and error.max() < 2.0
+    # and the maps work with cv2.remap as they are
+    image = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    assert cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR).shape == image.shape
