@@ -126,8 +126,6 @@ class PoseModel:
     @classmethod
     def from_checkpoint(cls, checkpoint: Any = None, device: str | torch.device = "auto") -> "PoseModel":
         """Load a checkpoint (a path, a model store, a loaded ``Checkpoint``, or None for the shipped one)."""
-        from nocal_ros.checkpoint import load_checkpoint  # the learning core; imported when needed
-
         device = resolve_device(device)
         model_id = "shipped default"
         if checkpoint is None or isinstance(checkpoint, (str, Path)):
@@ -137,6 +135,8 @@ class PoseModel:
 
                 path = resolve_model_path(checkpoint)
                 model_id = _file_id(path)
+            from nocal_ros.checkpoint import load_checkpoint  # the learning core; imported when needed
+
             checkpoint = load_checkpoint(path, device=str(device))
             if path is None:
                 shipped = getattr(checkpoint, "path", None)

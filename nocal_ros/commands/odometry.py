@@ -1,0 +1,336 @@
+"""``nocal odometry BAG --out DIR``: replay a bag offline through the odometry estimator.
+
+Writes into ``DIR``:
+
+* ``odometry``: a rosbag2 with ``/odom`` (nav_msgs/Odometry), ``/tf`` (``odom -> base``) and
+  ``/camera_info`` (the learnt camera; same stamp and frame id as each image);
+* ``trajectory.tum``: ``stamp x y z qx qy qz qw`` of the base frame in ``odom``;
+* ``calibration.yaml``: the learnt camera in ROS ``camera_calibration`` format;
+* when the bag has ground truth: ``report.json`` (RPE and APE with and without scale alignment,
+  focal and ``dr`` errors) and ``trajectory.png``.
+
+Nothing already in ``DIR`` is replaced unless ``--overwrite`` is given, and a failure half-way
+(a corrupt message, an interrupt) leaves no partial odometry bag behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nocal_ros.errors import BagError, NocalError
+from nocal_ros.geometry import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
+
+log = logging.getLogger(__name__)
+
+OUTPUT_NAMES = ("odometry", "trajectory.tum", "calibration.yaml", "report.json", "trajectory.png")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or file, or ROS 1 .bag)")
+    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument("--model", default="", help="checkpoint file or model store (default: the shipped model)")
+    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--image-topic", default="/camera/image_raw", help="sensor_msgs/Image or CompressedImage topic")
+    parser.add_argument("--gt-topic", default="/ground_truth/pose", help="ground-truth camera poses, when the bag has them")
+    parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info", help="true calibration, when the bag has it")
+    parser.add_argument("--odom-frame", default="odom")
+    parser.add_argument("--base-frame", default="", help="child frame of /odom (default: the images' frame id)")
+    parser.add_argument(
+        "--base-to-camera", type=float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        help="static pose of the camera optical frame in the base frame (default: identity)",
+    )
+    parser.add_argument("--frame-period", type=float, default=None, help="camera frame period in s (default: from stamps)")
+    parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "rational_polynomial"))
+    parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
+    parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from nocal_ros.odometry import OdometryEstimator
+
+    T_base_cam = None
+    if args.base_to_camera:
+        x, y, z, qx, qy, qz, qw = args.base_to_camera
+        T_base_cam = make_transform(quaternion_to_matrix(np.array([qx, qy, qz, qw])), np.array([x, y, z]))
+    estimator = OdometryEstimator(
+        args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
+        distortion_model=args.distortion_model,
+    )
+    result = replay_bag(
+        args.bag, args.out, estimator,
+        image_topic=args.image_topic, gt_topic=args.gt_topic, camera_info_topic=args.camera_info_topic,
+        odom_frame=args.odom_frame, base_frame=args.base_frame or None, storage=args.storage,
+        max_frames=args.max_frames, overwrite=args.overwrite, progress=not args.no_progress,
+    )
+    print(result.summary())
+    return 0
+
+
+@dataclass
+class ReplayResult:
+    """What a replay produced: the output paths, the estimate, and the report when there was truth."""
+
+    out_dir: Path
+    outputs: dict[str, Path]
+    stamps_ns: np.ndarray
+    T_odom_cam: np.ndarray
+    frames_in: int
+    counters: dict[str, int]
+    model_id: str
+    calibration_residual_px: float | None
+    seconds: float
+    report: dict | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        lines = [
+            f"model {self.model_id}: {self.frames_in} frames -> {len(self.stamps_ns)} poses in {self.seconds:.1f} s "
+            f"({1e3 * self.seconds / max(self.frames_in, 1):.1f} ms per frame)",
+        ]
+        skipped = {k: v for k, v in self.counters.items() if k not in ("frames", "pairs") and v}
+        if skipped:
+            lines.append("events: " + ", ".join(f"{k} {v}" for k, v in skipped.items()))
+        if self.report:
+            lines.append(format_report(self.report))
+        lines += [f"  {name:<17} {path}" for name, path in self.outputs.items()]
+        return "\n".join(lines)
+
+
+def format_report(report: dict) -> str:
+    """A few lines with the headline errors of a report."""
+    lines = []
+    rpe = report.get("rpe") or {}
+    if rpe:
+        lines.append(
+            f"RPE per pair: translation {rpe.get('translation_m', {}).get('rmse', float('nan')) * 100:.2f} cm RMSE, "
+            f"rotation {rpe.get('rotation_deg', {}).get('rmse', float('nan')):.3f} deg RMSE"
+        )
+    for key, label in (("ape_se3", "APE (SE(3) aligned)"), ("ape_sim3", "APE (Sim(3) aligned)")):
+        ape = report.get(key) or {}
+        if ape:
+            lines.append(f"{label}: {ape.get('rmse', float('nan')) * 100:.2f} cm RMSE")
+    calibration = report.get("calibration") or {}
+    if "focal_error_px" in calibration:
+        lines.append(
+            f"focal error {calibration['focal_error_px']:.1f} px ({calibration.get('focal_error_percent', float('nan')):.1f} %), "
+            f"dr {calibration.get('dr', float('nan')):.4f}"
+        )
+    return "\n".join(lines)
+
+
+def _image_count(bag: Path, topic: str) -> int | None:
+    try:
+        from nocal_ros.data.bags import _open_bag
+
+        with _open_bag(Path(bag)) as reader:
+            info = reader.topics.get(topic)
+            return None if info is None else int(info.msgcount)
+    except Exception:  # noqa: BLE001 - only a progress bar total
+        return None
+
+
+def _check_outputs(out_dir: Path, overwrite: bool) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NocalError(f"{out_dir}: exists and is not a directory")
+    existing = [name for name in OUTPUT_NAMES if (out_dir / name).exists()]
+    if existing and not overwrite:
+        raise NocalError(f"{out_dir}: already holds {', '.join(existing)}; pass --overwrite to replace them")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def write_tum(path: Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+    """TUM trajectory (``stamp_s x y z qx qy qz qw``), written atomically."""
+    temporary = path.with_name(f".{path.name}.tmp")
+    with open(temporary, "w", encoding="utf-8") as handle:
+        for stamp, T in zip(stamps_ns.tolist(), poses):
+            q = matrix_to_quaternion(T[:3, :3])
+            seconds, nanos = divmod(int(stamp), 1_000_000_000)
+            handle.write(f"{seconds}.{nanos:09d} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) + "\n")
+    os.replace(temporary, path)
+
+
+def _frames(bag: Path, image_topic: str, max_frames: int | None, progress: bool) -> Iterator[tuple[int, str, np.ndarray]]:
+    from nocal_ros.data.bags import iter_images
+
+    frames = iter_images(bag, image_topic)
+    total = _image_count(bag, image_topic)
+    if max_frames is not None:
+        total = min(total, max_frames) if total is not None else max_frames
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, total=total, unit="frame", desc="odometry", leave=False)
+    for index, item in enumerate(frames):
+        if max_frames is not None and index >= max_frames:
+            break
+        yield item
+
+
+def replay_bag(
+    bag: str | Path,
+    out_dir: str | Path,
+    estimator: Any,
+    *,
+    image_topic: str = "/camera/image_raw",
+    gt_topic: str | None = "/ground_truth/pose",
+    camera_info_topic: str | None = "/ground_truth/camera_info",
+    odom_frame: str = "odom",
+    base_frame: str | None = None,
+    storage: str = "mcap",
+    max_frames: int | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    plot: bool = True,
+) -> ReplayResult:
+    """Run ``estimator`` over a bag's images and write the outputs (see the module notes)."""
+    from nocal_ros.data.bags import BagWriter
+    from nocal_ros.odometry import FrameError
+
+    bag, out_dir = Path(bag), Path(out_dir)
+    if not bag.exists():
+        raise BagError(f"{bag}: no such bag (file or directory does not exist)")
+    _check_outputs(out_dir, overwrite)
+    outputs = {"odometry": out_dir / "odometry", "trajectory.tum": out_dir / "trajectory.tum"}
+    stamps: list[int] = []
+    poses_base: list[np.ndarray] = []
+    poses_cam: list[np.ndarray] = []
+    calibration = residual = None
+    frames_in = 0
+    start = time.perf_counter()
+    with BagWriter(outputs["odometry"], storage=storage, overwrite=overwrite) as writer:
+        writer.declare_topic("/odom", "nav_msgs/msg/Odometry")
+        writer.declare_topic("/tf", "tf2_msgs/msg/TFMessage")
+        writer.declare_topic("/camera_info", "sensor_msgs/msg/CameraInfo")
+        for stamp_ns, frame_id, image in _frames(bag, image_topic, max_frames, progress):
+            frames_in += 1
+            try:
+                result = estimator.process(stamp_ns, image)
+            except FrameError as error:
+                raise BagError(f"{bag}: {image_topic} frame {frames_in - 1}: {error}") from None
+            camera_frame = frame_id or "camera_optical"
+            if calibration is None and estimator.model.camera is not None:
+                calibration, residual = estimator.camera_info(image.shape[1], image.shape[0])
+            if calibration is not None:
+                writer.write_camera_info("/camera_info", stamp_ns, camera_frame, calibration)
+            if result is None:
+                continue
+            child = base_frame or camera_frame
+            writer.write_odometry(
+                "/odom", stamp_ns, odom_frame, child, result.T_odom_base, result.twist,
+                result.pose_covariance.reshape(-1), result.twist_covariance.reshape(-1),
+            )
+            writer.write_tf("/tf", stamp_ns, [(odom_frame, child, result.T_odom_base)])
+            stamps.append(stamp_ns)
+            poses_base.append(result.T_odom_base)
+            poses_cam.append(result.T_odom_cam)
+    seconds = time.perf_counter() - start
+    stamps_ns = np.asarray(stamps, dtype=np.int64)
+    write_tum(outputs["trajectory.tum"], stamps_ns, np.asarray(poses_base).reshape(-1, 4, 4))
+    if calibration is not None:
+        outputs["calibration.yaml"] = out_dir / "calibration.yaml"
+        calibration.save(outputs["calibration.yaml"])
+    else:
+        log.warning("model %s has no learnt camera: no camera_info or calibration.yaml", estimator.model_id)
+
+    replay = ReplayResult(
+        out_dir=out_dir, outputs=outputs, stamps_ns=stamps_ns, T_odom_cam=np.asarray(poses_cam).reshape(-1, 4, 4),
+        frames_in=frames_in, counters=dict(vars(estimator.counters)), model_id=estimator.model_id,
+        calibration_residual_px=residual, seconds=seconds,
+    )
+    truth = _ground_truth(bag, image_topic, gt_topic, camera_info_topic, max_frames)
+    if truth is not None:
+        replay.report = evaluate_replay(replay, truth, calibration, estimator)
+        outputs["report.json"] = out_dir / "report.json"
+        temporary = out_dir / ".report.json.tmp"
+        temporary.write_text(json.dumps(replay.report, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        os.replace(temporary, outputs["report.json"])
+        if plot and len(replay.stamps_ns) >= 2:
+            outputs["trajectory.png"] = out_dir / "trajectory.png"
+            plot_replay(replay, truth, outputs["trajectory.png"])
+    return replay
+
+
+@dataclass
+class GroundTruth:
+    stamps_ns: np.ndarray  # (N,) image stamps with a true pose
+    T_w_cam: np.ndarray  # (N, 4, 4)
+    calibration: Any  # CameraCalibration at native resolution, or None
+
+
+def _ground_truth(bag: Path, image_topic: str, gt_topic: str | None, camera_info_topic: str | None,
+                  max_frames: int | None) -> GroundTruth | None:
+    """True camera poses at the image stamps and the true calibration, when the bag has them."""
+    if not gt_topic:
+        return None
+    from nocal_ros.data.bags import read_sequence
+
+    # Images are decoded again here; shrunk to a few pixels they cost little and free the memory.
+    sequence = read_sequence(
+        bag, image_topic=image_topic, pose_source="none", gt_topic=gt_topic,
+        camera_info_topic=camera_info_topic, resize=(4, 4), max_frames=max_frames,
+    )
+    if sequence.ground_truth is None:
+        return None
+    valid = np.isfinite(sequence.ground_truth).all(axis=(1, 2))
+    if valid.sum() < 2:
+        return None
+    calibration = sequence.calibration
+    native = sequence.extras.get("native_size")
+    if calibration is not None and native is not None and (calibration.width, calibration.height) != tuple(native):
+        calibration = calibration.scaled(*native)
+    return GroundTruth(sequence.stamps_ns[valid], sequence.ground_truth[valid], calibration)
+
+
+def _matched(replay: ReplayResult, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Estimated and true camera poses at the stamps both have, both starting at the identity."""
+    common, est_index, gt_index = np.intersect1d(replay.stamps_ns, truth.stamps_ns, return_indices=True)
+    estimate = replay.T_odom_cam[est_index]
+    T_gt = truth.T_w_cam[gt_index]
+    if len(common):
+        # Express both in the first matched camera frame, so unaligned errors mean something too.
+        estimate = invert_transform(estimate[0]) @ estimate
+        T_gt = invert_transform(T_gt[0]) @ T_gt
+    return common, estimate, T_gt
+
+
+def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, estimator: Any) -> dict:
+    """RPE and APE (with and without scale alignment), focal and dr errors, as a JSON-able dict."""
+    from nocal_ros import evaluation
+
+    stamps, estimate, T_gt = _matched(replay, truth)
+    report: dict[str, Any] = {
+        "model": replay.model_id,
+        "frames": int(replay.frames_in),
+        "poses": int(len(replay.stamps_ns)),
+        "evaluated_poses": int(len(stamps)),
+        "events": {k: int(v) for k, v in replay.counters.items()},
+    }
+    if len(stamps) >= 2:
+        report.update(evaluation.trajectory_errors(stamps, estimate, T_gt))
+    camera = estimator.model.camera
+    if truth.calibration is not None and camera is not None:
+        report["calibration"] = evaluation.calibration_errors(camera, truth.calibration)
+        if replay.calibration_residual_px is not None:
+            report["calibration"]["fit_residual_px"] = float(replay.calibration_residual_px)
+            report["calibration"]["distortion_model"] = calibration.distortion_model
+    return report
+
+
+def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
+    """Top view of estimate vs truth (after Sim(3) alignment) and the position error over time."""
+    from nocal_ros import evaluation
+
+    stamps, estimate, T_gt = _matched(replay, truth)
+    evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}")
