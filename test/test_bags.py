@@ -69,6 +69,7 @@ def test_write_read_round_trip_is_exact(tmp_path, storage):
         "/ground_truth/camera_info": ("sensor_msgs/msg/CameraInfo", n),
     }
     assert image_stamps == sequence.stamps_ns.tolist()
+    assert bags.bag_topics(path) == topics
 
     back = read_sequence(path)
     np.testing.assert_array_equal(back.images, sequence.images)

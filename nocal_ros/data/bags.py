@@ -585,6 +585,7 @@ class TfBuffer:
 
     def chain(self, parent: str, child: str) -> tuple[list[tuple[str, str]], list[tuple[str, str]]] | None:
         """Edges from a common ancestor down to ``parent`` and down to ``child``, or None if unconnected."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")  # ROS 1 frame ids may carry a leading slash
         up_child = self._path_to_root(child)
         up_parent = self._path_to_root(parent)
         common = next((frame for frame in up_child if frame in up_parent), None)
@@ -640,6 +641,13 @@ def _open_bag(path: Path) -> Iterator[Any]:
         raise BagError(
             f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {type(error).__name__}: {error}"
         ) from error
+
+
+def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
+    """``{topic: (message type, message count)}`` of a bag, read from its index (no messages decoded)."""
+    path = _check_path(path)
+    with _open_bag(path) as reader:
+        return {name: (str(info.msgtype), int(info.msgcount)) for name, info in reader.topics.items()}
 
 
 def _topic_list(reader: Any) -> str:
