@@ -390,3 +390,59 @@ def test_uncalibrated_camera_info_is_unknown_not_fatal(tmp_path):
     sequence = read_sequence(path)
     assert sequence.calibration is None
     assert "positive focal" in sequence.extras["camera_info_problem"]
+
+
+# --------------------------------------------------------------------------------------------------
+# odds and ends of real recordings
+# --------------------------------------------------------------------------------------------------
+
+
+def test_out_of_order_and_repeated_stamps_are_sorted_and_dropped(tmp_path):
+    """Header stamps (sensor time) order the frames, not receive times; a repeated stamp keeps its first frame."""
+    path = tmp_path / "bag"
+    with BagWriter(path) as writer:
+        for k, stamp in enumerate([3, 1, 2, 2]):
+            msg = writer.types["sensor_msgs/msg/Image"](
+                header=writer.header(stamp * S, "cam"), height=H, width=W, encoding="mono8", is_bigendian=0,
+                step=W, data=np.full(H * W, 10 * k, np.uint8))
+            writer.write_message("/camera/image_raw", (k + 1) * S, msg)
+    sequence = read_sequence(path)
+    np.testing.assert_array_equal(sequence.stamps_ns, [S, 2 * S, 3 * S])
+    np.testing.assert_array_equal(sequence.images[:, 0, 0, 0], [10, 20, 0])
+    assert sequence.extras["dropped_repeated_stamps"] == 1
+
+
+def test_read_poses_of_other_pose_types(tmp_path):
+    path = tmp_path / "bag"
+    T0, T1 = tool_pose(0.0), tool_pose(0.01)
+    with BagWriter(path, "sqlite3") as writer:
+        t = writer.types
+        for stamp, T in ((S, T0), (S + 10_000_000, T1)):
+            transform = t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                rotation=writer._pose(T).orientation)
+            writer.write_message("/tracker", stamp, t["geometry_msgs/msg/TransformStamped"](
+                header=writer.header(stamp, "world"), child_frame_id="cam", transform=transform))
+            writer.write_message("/amcl", stamp, t["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=writer.header(stamp, "map"),
+                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=writer._pose(T), covariance=np.zeros(36))))
+    stamps = [S, S + 5_000_000, S + 20_000_000]
+    for topic in ("/tracker", "/amcl"):
+        poses = bags.read_poses(path, topic, stamps, tolerance_s=0.02)
+        np.testing.assert_allclose(poses[0], T0, atol=1e-12)
+        np.testing.assert_allclose(poses[1], tool_pose(0.005), atol=1e-9)
+        assert np.isnan(poses[2]).all()  # after the last sample: no extrapolation
+    with pytest.raises(BagError, match="no pose topic '/gps'"):
+        bags.read_poses(path, "/gps", stamps)
+
+
+def test_decoder_takes_rclpy_style_messages():
+    """rclpy gives ``data`` as array.array (Image) and plain attributes; the one decoder serves both."""
+    from array import array
+    from types import SimpleNamespace
+
+    msg = SimpleNamespace(height=5, width=7, encoding="bgr8", is_bigendian=0, step=21,
+                          data=array("B", RGB[:, :, ::-1].tobytes()))
+    np.testing.assert_array_equal(decode_image(msg), RGB)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(RGB, cv2.COLOR_RGB2BGR))
+    np.testing.assert_array_equal(decode_compressed_image(SimpleNamespace(format="png", data=png.tobytes())), RGB)

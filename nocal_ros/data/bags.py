@@ -713,6 +713,35 @@ def _pose_from_msg(msg: Any, msgtype: str) -> np.ndarray:
     return transform_msg_to_matrix(msg.transform)
 
 
+def read_poses(
+    path: str | Path, topic: str, stamps_ns: Sequence[int] | np.ndarray, tolerance_s: float = 0.02
+) -> np.ndarray:
+    """Poses on ``topic`` (PoseStamped, PoseWithCovarianceStamped or TransformStamped) at the given
+    stamps, ``(N, 4, 4)``, NaN where no sample is within tolerance (see :class:`PoseTrack`).
+
+    Reads that one topic only: for ground truth beside :func:`iter_images`, without decoding images.
+    """
+    path = _check_path(path)
+    track = PoseTrack()
+    with _open_bag(path) as reader:
+        info = reader.topics.get(topic)
+        if info is None:
+            raise BagError(f"{path}: no pose topic {topic!r}; topics in the bag: {_topic_list(reader)}")
+        if info.msgtype not in POSE_TYPES:
+            raise BagError(f"{path}: topic {topic} holds {info.msgtype}, not one of {', '.join(POSE_TYPES)}")
+        connections = [c for c in reader.connections if c.topic == topic]
+        for connection, bag_stamp, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            track.add(_header_stamp(msg, bag_stamp), _pose_from_msg(msg, connection.msgtype))
+    tolerance_ns = int(round(tolerance_s * 1e9))
+    poses = np.full((len(stamps_ns), 4, 4), np.nan)
+    for row, stamp in enumerate(np.asarray(stamps_ns, dtype=np.int64).tolist()):
+        T = track.at(stamp, tolerance_ns)
+        if T is not None:
+            poses[row] = T
+    return poses
+
+
 def iter_images(
     path: str | Path, image_topic: str = IMAGE_TOPIC, resize: Sequence[int] | None = None
 ) -> Iterator[tuple[int, str, np.ndarray]]:
