@@ -14,7 +14,7 @@ from nocal_ros.data import bags
 from nocal_ros.data.bags import BagWriter, decode_compressed_image, decode_image, iter_images, read_sequence, write_sequence
 from nocal_ros.data.sequence import FrameSequence
 from nocal_ros.errors import BagError
-from nocal_ros.geometry import invert_transform, make_transform, so3_exp
+from nocal_ros.geometry import invert_transform, make_transform, matrix_to_quaternion, so3_exp
 from nocal_ros.lens import CameraCalibration
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
@@ -417,15 +417,21 @@ def test_read_poses_of_other_pose_types(tmp_path):
     T0, T1 = tool_pose(0.0), tool_pose(0.01)
     with BagWriter(path, "sqlite3") as writer:
         t = writer.types
+
+        def pose(T):
+            x, y, z, w = matrix_to_quaternion(T[:3, :3])
+            return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                                               orientation=t["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))
+
         for stamp, T in ((S, T0), (S + 10_000_000, T1)):
             transform = t["geometry_msgs/msg/Transform"](
                 translation=t["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-                rotation=writer._pose(T).orientation)
+                rotation=pose(T).orientation)
             writer.write_message("/tracker", stamp, t["geometry_msgs/msg/TransformStamped"](
                 header=writer.header(stamp, "world"), child_frame_id="cam", transform=transform))
             writer.write_message("/amcl", stamp, t["geometry_msgs/msg/PoseWithCovarianceStamped"](
                 header=writer.header(stamp, "map"),
-                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=writer._pose(T), covariance=np.zeros(36))))
+                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose(T), covariance=np.zeros(36))))
     stamps = [S, S + 5_000_000, S + 20_000_000]
     for topic in ("/tracker", "/amcl"):
         poses = bags.read_poses(path, topic, stamps, tolerance_s=0.02)
