@@ -267,3 +267,31 @@ def test_reload_keeps_the_pose_and_restarts_the_chain():
     np.testing.assert_allclose(restart.T_odom_base, expected_T_odom_base(T_w_c, 0, 2, np.eye(4)), atol=2e-5)
     estimator.process(START_NS + 4 * PERIOD_NS, frame(4))
     assert poses.calls == [(3, 4)] and estimator.model_id == "other"
+
+
+def test_real_pose_head_sees_the_resized_frames_in_order():
+    """With the real network: the estimator's pair motion is the network's answer on (previous, current)
+    resized by OpenCV, computed here independently, in the contiguous layout the estimator does not use."""
+    import cv2
+
+    from nocal_ros.model import NOCaL
+
+    torch.manual_seed(0)
+    network = NOCaL({"pose_scale": 300.0}).eval()  # a large output scale: poses far from the identity
+    reference = NOCaL({"pose_scale": 300.0}).eval()
+    reference.load_state_dict(network.state_dict())
+    estimator = OdometryEstimator(PoseModel(predict_pose=network.predict_pose, input_size=(40, 30), module=network))
+    rng = np.random.default_rng(0)
+    images = [cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (160, 120)) for _ in range(3)]
+    results = [estimator.process(START_NS + k * PERIOD_NS, image) for k, image in enumerate(images)]
+
+    def tensor(image):
+        small = cv2.resize(image, (40, 30), interpolation=cv2.INTER_AREA)
+        return torch.from_numpy(small).permute(2, 0, 1)[None].float() / 255.0
+
+    with torch.no_grad():
+        expected = [reference.predict_pose(tensor(images[k]), tensor(images[k + 1]))[0].double().numpy() for k in range(2)]
+    assert not np.allclose(expected[0], np.eye(4), atol=1e-2) and not np.allclose(expected[0], expected[1], atol=1e-3)
+    for k in range(2):
+        np.testing.assert_allclose(results[k + 1].T_prev_curr, expected[k], atol=1e-5)
+    np.testing.assert_allclose(results[2].T_odom_base, expected[0] @ expected[1], atol=1e-5)

@@ -1,0 +1,230 @@
+"""``nocal bench``: pose-head and estimator latency, the figures BENCHMARKS.md quotes.
+
+For each device (CPU, and CUDA when present) it prints:
+
+* the pose head alone at batch 1: milliseconds per pair, median and 90th percentile after warm-up;
+* the pose head at batch 32: pairs per second;
+* the estimator end to end per frame: decoding a ``sensor_msgs/Image`` at the native resolution,
+  resizing to the training resolution, the pose head on (previous, current), pose integration and
+  covariance, i.e. everything the odometry node does between receiving a message and publishing.
+
+On CUDA the estimator runs with CUDA graphs and pinned memory (as the node does), and in half
+precision too, with the pose difference half precision makes against fp32 on the same frames.
+Timings synchronise the device before reading the clock, so they are what a caller waits for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+
+from nocal_ros.errors import NocalError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", default="", help="checkpoint or model store (default: the shipped model; "
+                        "an untrained model of the default shape when none is shipped)")
+    parser.add_argument("--untrained", action="store_true", help="time an untrained model of the default shape")
+    parser.add_argument("--devices", default="auto", help="comma list of cpu, cuda; auto = cpu and cuda when present")
+    parser.add_argument("--native", default="640x480", help="camera resolution fed to the estimator, WxH")
+    parser.add_argument("--iterations", type=int, default=200, help="timed runs per figure")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed runs first")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: leave torch's default)")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise NocalError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
+    if width < 8 or height < 8:
+        raise NocalError(f"size {text!r} is too small")
+    return width, height
+
+
+def _pose_model(args: argparse.Namespace, device: torch.device):
+    """The model to time, as a PoseModel, and a description of where it came from."""
+    from nocal_ros.odometry import PoseModel
+
+    if not args.untrained:
+        try:
+            return PoseModel.from_checkpoint(args.model or None, device), "checkpoint"
+        except (ImportError, NocalError) as error:
+            if args.model:
+                raise
+            reason = f"no shipped model ({error})"
+    else:
+        reason = "requested"
+    from nocal_ros.model import NOCaL
+
+    model = NOCaL().to(device).eval()
+    return PoseModel(predict_pose=model.predict_pose, input_size=(80, 60), device=device,
+                     model_id="untrained default shape", module=model), f"untrained ({reason})"
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time(fn, device: torch.device, iterations: int, warmup: int) -> np.ndarray:
+    for _ in range(warmup):
+        fn()
+    _sync(device)
+    times = np.empty(iterations)
+    for index in range(iterations):
+        start = time.perf_counter()
+        fn()
+        _sync(device)
+        times[index] = time.perf_counter() - start
+    return times * 1e3
+
+
+def _stats(ms: np.ndarray) -> dict[str, float]:
+    return {"median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)), "mean_ms": float(ms.mean())}
+
+
+def _frames(native: tuple[int, int], count: int, seed: int = 0) -> list[np.ndarray]:
+    """Smooth random images (a real camera's frames are not white noise; resize cost does not care)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, size=(count, native[1] // 8, native[0] // 8, 3), dtype=np.uint8)
+    return [cv2.resize(image, native, interpolation=cv2.INTER_LINEAR) for image in small]
+
+
+def _image_message(image: np.ndarray, stamp_ns: int) -> Any:
+    height, width = image.shape[:2]
+    stamp = SimpleNamespace(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+    return SimpleNamespace(
+        header=SimpleNamespace(stamp=stamp, frame_id="camera_optical"), height=height, width=width,
+        encoding="rgb8", is_bigendian=0, step=width * 3, data=image.tobytes(),
+    )
+
+
+def bench_pose_head(pose_model, iterations: int, warmup: int) -> dict[str, Any]:
+    device = pose_model.device
+    width, height = pose_model.input_size
+    generator = torch.Generator(device="cpu").manual_seed(0)
+    results: dict[str, Any] = {}
+    for batch in (1, 32):
+        image_i = torch.rand((batch, 3, height, width), generator=generator).to(device)
+        image_j = torch.rand((batch, 3, height, width), generator=generator).to(device)
+
+        def step() -> None:
+            with torch.inference_mode():
+                pose_model.predict_pose(image_i, image_j)
+
+        ms = _time(step, device, iterations if batch == 1 else max(10, iterations // 8), warmup)
+        stats = _stats(ms)
+        if batch == 1:
+            results["batch1"] = stats
+        else:
+            results["batch32"] = {**stats, "pairs_per_s": float(32e3 / np.median(ms))}
+    return results
+
+
+def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup: int,
+                    precision: str = "fp32", cuda_graphs: bool = True) -> tuple[dict[str, Any], np.ndarray]:
+    """Per-frame latency of decode + OdometryEstimator.process; also returns the estimated poses."""
+    from nocal_ros.data.bags import decode_image
+    from nocal_ros.odometry import OdometryEstimator
+
+    estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs)
+    frames = _frames(native, 16)
+    messages = [_image_message(frame, 0) for frame in frames]
+    period = 33_333_333
+    state = {"k": 0}
+    poses: list[np.ndarray] = []
+
+    def step() -> None:
+        k = state["k"]
+        state["k"] = k + 1
+        result = estimator.process(k * period, decode_image(messages[k % len(messages)]), encoding="rgb8")
+        if result is not None:
+            poses.append(result.T_prev_curr)
+
+    ms = _time(step, pose_model.device, iterations, warmup)
+    stats = _stats(ms)
+    stats.update(precision=precision, cuda_graphs=bool(getattr(estimator._runner, "graphs", None)))
+    return stats, np.asarray(poses)
+
+
+def _pose_difference(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    from nocal_ros.geometry import rotation_angle_deg
+
+    n = min(len(a), len(b))
+    translation = np.linalg.norm(a[:n, :3, 3] - b[:n, :3, 3], axis=1)
+    rotation = [rotation_angle_deg(a[k, :3, :3].T @ b[k, :3, :3]) for k in range(n)]
+    return {"max_translation_mm": float(translation.max() * 1e3), "max_rotation_deg": float(np.max(rotation))}
+
+
+def run_bench(args: argparse.Namespace) -> dict[str, Any]:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    native = _size(args.native)
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.devices == "auto" else args.devices.split(",")
+    report: dict[str, Any] = {
+        "machine": {
+            "cpu": platform.processor() or platform.machine(),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        },
+        "native": list(native),
+        "iterations": args.iterations,
+        "devices": {},
+    }
+    for name in devices:
+        if name == "cuda" and not torch.cuda.is_available():
+            raise NocalError("--devices cuda: CUDA is not available on this machine")
+        device = torch.device(name)
+        pose_model, source = _pose_model(args, device)
+        entry: dict[str, Any] = {"model": pose_model.model_id, "model_source": source,
+                                 "input": list(pose_model.input_size)}
+        entry["pose_head"] = bench_pose_head(pose_model, args.iterations, args.warmup)
+        entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup)
+        if device.type == "cuda":
+            entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup, cuda_graphs=False)
+            entry["estimator_fp16"], poses16 = bench_estimator(pose_model, native, args.iterations, args.warmup, precision="fp16")
+            entry["estimator_fp16"]["difference_vs_fp32"] = _pose_difference(poses16, poses32)
+        report["devices"][name] = entry
+    return report
+
+
+def format_bench(report: dict[str, Any]) -> str:
+    machine = report["machine"]
+    lines = [f"torch {machine['torch']}, {machine['torch_threads']} CPU threads, "
+             f"GPU: {machine['cuda_device'] or 'none'}; native frames {report['native'][0]}x{report['native'][1]}, "
+             f"{report['iterations']} timed runs"]
+    for name, entry in report["devices"].items():
+        head = entry["pose_head"]
+        lines.append(f"[{name}] model: {entry['model']} ({entry['model_source']}), input {entry['input'][0]}x{entry['input'][1]}")
+        lines.append(f"  pose head, batch 1:   median {head['batch1']['median_ms']:.3f} ms, p90 {head['batch1']['p90_ms']:.3f} ms per pair")
+        lines.append(f"  pose head, batch 32:  {head['batch32']['pairs_per_s']:.0f} pairs/s "
+                     f"({head['batch32']['median_ms']:.2f} ms per batch)")
+        for key, label in (("estimator", "estimator"), ("estimator_eager", "estimator, no graphs"),
+                           ("estimator_fp16", "estimator, fp16")):
+            if key in entry:
+                e = entry[key]
+                extra = ""
+                if "difference_vs_fp32" in e:
+                    d = e["difference_vs_fp32"]
+                    extra = f" (vs fp32: {d['max_translation_mm']:.3f} mm, {d['max_rotation_deg']:.4f} deg max)"
+                lines.append(f"  {label + ':':<22}median {e['median_ms']:.3f} ms, p90 {e['p90_ms']:.3f} ms per frame "
+                             f"(decode + resize + pose head + integration){extra}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    report = run_bench(args)
+    print(json.dumps(report, indent=2) if args.json else format_bench(report))
+    return 0
