@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from nocal_ros.errors import NocalError
-from nocal_ros.geometry import invert_transform, relative_transform, rotation_angle_deg
 
 if TYPE_CHECKING:
     from nocal_ros.camera import CameraModel
@@ -133,12 +132,30 @@ def mean_radial_shift(estimate: "CameraModel | CameraCalibration", truth: "Camer
     return radial_shift(estimate, truth)["mean"]
 
 
-def camera_errors(estimate: "CameraModel | CameraCalibration", truth: "CameraCalibration") -> dict[str, Any]:
-    """All camera metrics in one JSON-serialisable dict."""
+def calibration_errors(estimate: "CameraModel | CameraCalibration", truth: "CameraCalibration") -> dict[str, Any]:
+    """All camera metrics as one flat JSON-serialisable dict (native pixels; ``dr`` in normalised units).
+
+    Headline keys: ``focal_error_px`` / ``focal_error_percent`` (mean of fx and fy),
+    ``principal_point_error_px`` (distance) and ``dr`` (mean radial shift).
+    """
+    focal = focal_error(estimate, truth)
+    principal = principal_point_error(estimate, truth)
+    shift = radial_shift(estimate, truth)
     return {
-        "focal": focal_error(estimate, truth),
-        "principal_point": principal_point_error(estimate, truth),
-        "radial_shift": radial_shift(estimate, truth),
+        "focal_error_px": focal["mean_px"],
+        "focal_error_percent": focal["mean_percent"],
+        "principal_point_error_px": principal["distance_px"],
+        "dr": shift["mean"],
+        "dr_rms": shift["rms"],
+        "dr_max": shift["max"],
+        "dr_px": shift["mean_px"],
+        "dr_valid_fraction": shift["valid_fraction"],
+        **{k: focal[k] for k in ("fx_est", "fy_est", "fx_true", "fy_true")},
+        "fx_error_px": focal["fx_px"],
+        "fy_error_px": focal["fy_px"],
+        **{k: principal[k] for k in ("cx_est", "cy_est", "cx_true", "cy_true")},
+        "cx_error_px": principal["cx_px"],
+        "cy_error_px": principal["cy_px"],
     }
 
 
@@ -242,16 +259,29 @@ def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: 
         metric.process_data((reference, estimated))
         result[key] = _statistics(metric.error)
         result[key + "_per_pose"] = [float(e) for e in metric.error]
+    # APE is quoted as a position error: its translation statistics (metres) also sit at the top level.
+    result.update(result["translation_m"])
     return result
 
 
-def odometry_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
-    """RPE (delta 1, metric) plus APE with SE(3) and Sim(3) alignment for one trajectory."""
-    return {
-        "rpe": relative_pose_error(estimate, truth, delta=1),
-        "ape_se3": absolute_pose_error(estimate, truth, correct_scale=False),
-        "ape_sim3": absolute_pose_error(estimate, truth, correct_scale=True),
+def trajectory_errors(stamps_ns: np.ndarray | None, estimate: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
+    """RPE per consecutive pair (metric, no alignment) plus APE with SE(3) and Sim(3) alignment.
+
+    ``estimate`` and ``truth`` are camera poses ``(N, 4, 4)`` at the same ``stamps_ns`` (or None).
+    """
+    truth = _check_poses(truth, "true poses")
+    positions = truth[:, :3, 3]
+    result: dict[str, Any] = {
+        "poses": int(len(truth)),
+        "path_length_m": float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()),
     }
+    if stamps_ns is not None and len(stamps_ns) == len(truth):
+        result["duration_s"] = float((int(stamps_ns[-1]) - int(stamps_ns[0])) * 1e-9)
+    result["rpe"] = relative_pose_error(estimate, truth, delta=1)
+    if len(truth) >= 3:
+        result["ape_se3"] = absolute_pose_error(estimate, truth, correct_scale=False)
+        result["ape_sim3"] = absolute_pose_error(estimate, truth, correct_scale=True)
+    return result
 
 
 # --------------------------------------------------------------------------------------------------
@@ -266,37 +296,35 @@ def _without_series(value: Any) -> Any:
 
 
 def format_report(report: dict[str, Any]) -> str:
-    """A plain-text table of a report made of :func:`camera_errors` / :func:`odometry_errors` parts."""
+    """A plain-text table of a report holding ``calibration`` (:func:`calibration_errors`) and/or the
+    ``rpe`` / ``ape_se3`` / ``ape_sim3`` parts of :func:`trajectory_errors`, plus scalar facts."""
     lines: list[str] = []
-    camera = report.get("camera")
-    if camera:
-        focal, principal, shift = camera["focal"], camera["principal_point"], camera["radial_shift"]
+    c = report.get("calibration")
+    if c:
         lines += [
-            "camera                      estimate        truth        error",
-            f"  fx (px)               {focal['fx_est']:>12.2f} {focal['fx_true']:>12.2f} {focal['fx_px']:>9.2f} ({focal['fx_percent']:.2f} %)",
-            f"  fy (px)               {focal['fy_est']:>12.2f} {focal['fy_true']:>12.2f} {focal['fy_px']:>9.2f} ({focal['fy_percent']:.2f} %)",
-            f"  cx (px)               {principal['cx_est']:>12.2f} {principal['cx_true']:>12.2f} {principal['cx_px']:>9.2f}",
-            f"  cy (px)               {principal['cy_est']:>12.2f} {principal['cy_true']:>12.2f} {principal['cy_px']:>9.2f}",
-            f"  mean radial shift dr  {shift['mean']:>12.5f} (normalised units; about {shift['mean_px']:.2f} px; max {shift['max']:.5f})",
+            "camera                     estimate        truth        error",
+            f"  fx (px)              {c['fx_est']:>11.2f} {c['fx_true']:>12.2f} {c['fx_error_px']:>12.2f}",
+            f"  fy (px)              {c['fy_est']:>11.2f} {c['fy_true']:>12.2f} {c['fy_error_px']:>12.2f}",
+            f"  cx (px)              {c['cx_est']:>11.2f} {c['cx_true']:>12.2f} {c['cx_error_px']:>12.2f}",
+            f"  cy (px)              {c['cy_est']:>11.2f} {c['cy_true']:>12.2f} {c['cy_error_px']:>12.2f}",
+            f"  focal error          {c['focal_error_px']:>11.2f} px ({c['focal_error_percent']:.2f} %)",
+            f"  mean radial shift dr {c['dr']:>11.5f} (normalised; about {c['dr_px']:.2f} px; max {c['dr_max']:.5f})",
         ]
-    odometry = report.get("odometry")
-    if odometry:
-        lines.append("odometry                         mean        std       rmse        max      count")
-        rows = [("rpe", "RPE"), ("ape_se3", "APE SE(3)"), ("ape_sim3", "APE Sim(3)")]
+        if "fit_residual_px" in c:
+            lines.append(f"  {c.get('distortion_model', 'parametric')} fit residual {c['fit_residual_px']:.3f} px RMS")
+    rows = [(key, label) for key, label in (("rpe", "RPE"), ("ape_se3", "APE SE(3)"), ("ape_sim3", "APE Sim(3)")) if report.get(key)]
+    if rows:
+        lines.append("odometry                        mean        std       rmse        max    count")
         for key, label in rows:
-            if key not in odometry:
-                continue
             for unit_key, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
-                s = odometry[key][unit_key]
+                st = report[key][unit_key]
                 lines.append(
-                    f"  {label + ' ' + unit:<24} {s['mean']:>10.4f} {s['std']:>10.4f} {s['rmse']:>10.4f} {s['max']:>10.4f} {s['count']:>10d}"
+                    f"  {label + ' ' + unit:<22} {st['mean']:>10.4f} {st['std']:>10.4f} {st['rmse']:>10.4f} {st['max']:>10.4f} {st['count']:>8d}"
                 )
-            if key == "ape_sim3":
-                lines.append(f"  {'Sim(3) scale':<24} {odometry[key]['scale']:>10.4f}")
-    for key, value in report.items():
-        if key not in ("camera", "odometry") and not isinstance(value, (dict, list)):
-            lines.append(f"{key}: {value}")
-    return "\n".join(lines)
+        if report.get("ape_sim3"):
+            lines.append(f"  Sim(3) alignment scale {report['ape_sim3']['scale']:>10.4f}")
+    facts = [f"{k}: {v}" for k, v in report.items() if not isinstance(v, (dict, list)) and v is not None]
+    return "\n".join(facts + lines)
 
 
 def print_report(report: dict[str, Any]) -> None:
@@ -310,16 +338,17 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
 
 
 def plot_trajectory(
+    path: str | Path,
+    stamps_ns: Sequence[int] | np.ndarray | None,
     estimate: np.ndarray,
     truth: np.ndarray,
-    path: str | Path,
-    stamps_s: Sequence[float] | None = None,
     title: str = "",
 ) -> Path:
-    """PNG with the top view of estimate and truth, and the per-pair RPE over time.
+    """PNG: top view of the estimate (after Sim(3) alignment) and the truth; position error after that
+    alignment and the per-pair RPE over time.
 
-    The top view shows the plane of the truth's two largest position extents (world frames differ
-    in which axis is up). Uses matplotlib's Agg backend: no display needed.
+    The top view shows the plane of the truth's two largest position extents (world frames differ in
+    which axis is up). Uses matplotlib's Agg backend: no display needed.
     """
     import matplotlib
 
@@ -328,34 +357,38 @@ def plot_trajectory(
 
     estimate = _check_poses(estimate, "estimated poses")
     truth = _check_poses(truth, "true poses")
-    if len(estimate) != len(truth):
-        raise ValueError(f"trajectories differ in length: {len(estimate)} estimated, {len(truth)} true poses")
-    errors = [relative_transform(truth[i], truth[i + 1]) for i in range(len(truth) - 1)]
-    predicted = [relative_transform(estimate[i], estimate[i + 1]) for i in range(len(estimate) - 1)]
-    pair_errors = [invert_transform(q) @ p for q, p in zip(errors, predicted)]
-    translation_error = np.array([np.linalg.norm(e[:3, 3]) for e in pair_errors])
-    rotation_error = np.array([rotation_angle_deg(e[:3, :3]) for e in pair_errors])
-    time = np.arange(1, len(truth)) if stamps_s is None else np.asarray(stamps_s, dtype=np.float64)[1:]
+    if len(estimate) != len(truth) or len(truth) < 3:
+        raise ValueError(f"need two trajectories of the same length >= 3, got {len(estimate)} and {len(truth)} poses")
+    ape = absolute_pose_error(estimate, truth, correct_scale=True)
+    alignment = np.array(ape["alignment"])
+    aligned = ape["scale"] * estimate[:, :3, 3] @ alignment[:3, :3].T + alignment[:3, 3]
+    rpe = relative_pose_error(estimate, truth)
+    if stamps_ns is None:
+        time, time_label = np.arange(len(truth), dtype=np.float64), "frame"
+    else:
+        stamps = np.asarray(stamps_ns, dtype=np.int64)
+        time, time_label = (stamps - stamps[0]) * 1e-9, "time (s)"
 
     extent = truth[:, :3, 3].max(0) - truth[:, :3, 3].min(0)
     a, b = sorted(np.argsort(extent)[-2:])
-    axis_names = "xyz"
     figure, (top, error_axis) = plt.subplots(1, 2, figsize=(11, 4.5))
     top.plot(truth[:, a, 3], truth[:, b, 3], "k-", label="truth")
-    top.plot(estimate[:, a, 3], estimate[:, b, 3], "r-", label="estimate")
+    top.plot(aligned[:, a], aligned[:, b], "r-", label=f"estimate (Sim(3) aligned, scale {ape['scale']:.3f})")
     top.plot(truth[0, a, 3], truth[0, b, 3], "ko")
-    top.set_xlabel(f"{axis_names[a]} (m)")
-    top.set_ylabel(f"{axis_names[b]} (m)")
+    top.set_xlabel(f"{'xyz'[a]} (m)")
+    top.set_ylabel(f"{'xyz'[b]} (m)")
     top.set_aspect("equal", adjustable="datalim")
-    top.legend()
+    top.legend(fontsize="small")
     top.set_title("top view")
-    error_axis.plot(time, translation_error, "b-")
-    error_axis.set_xlabel("frame" if stamps_s is None else "time (s)")
-    error_axis.set_ylabel("RPE translation (m)", color="b")
+    error_axis.plot(time, ape["translation_m_per_pose"], "b-", label="position error, Sim(3) aligned")
+    error_axis.plot(time[1:], rpe["translation_m_per_pair"], "c-", label="RPE translation per pair")
+    error_axis.set_xlabel(time_label)
+    error_axis.set_ylabel("error (m)")
+    error_axis.legend(fontsize="small", loc="upper left")
     rotation_axis = error_axis.twinx()
-    rotation_axis.plot(time, rotation_error, "g-")
-    rotation_axis.set_ylabel("RPE rotation (deg)", color="g")
-    error_axis.set_title("per-pair error")
+    rotation_axis.plot(time[1:], rpe["rotation_deg_per_pair"], "g-", alpha=0.6)
+    rotation_axis.set_ylabel("RPE rotation per pair (deg)", color="g")
+    error_axis.set_title("error over time")
     if title:
         figure.suptitle(title)
     figure.tight_layout()

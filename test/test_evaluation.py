@@ -50,9 +50,14 @@ def test_camera_metrics_compare_at_the_truths_native_resolution():
     truth = CameraCalibration(640, 480, np.array([[520.0, 0, 330.0], [0, 515.0, 236.0], [0, 0, 1]]))
     small = scale_intrinsics(truth.K, 0.25, 0.25)
     camera = CameraModel(160, 120, fx=small[0, 0], fy=small[1, 1], cx=small[0, 2], cy=small[1, 2])
-    errors = ev.camera_errors(camera, truth)
-    assert errors["focal"]["mean_px"] < 1e-3 and errors["principal_point"]["distance_px"] < 1e-3
-    assert errors["radial_shift"]["mean"] < 1e-6
+    errors = ev.calibration_errors(camera, truth)
+    assert errors["focal_error_px"] < 1e-3 and errors["principal_point_error_px"] < 1e-3
+    assert errors["dr"] < 1e-6
+    shifted = CameraModel(640, 480, fx=530.0, fy=515.0, cx=333.0, cy=232.0)
+    errors = ev.calibration_errors(shifted, truth)
+    assert errors["fx_error_px"] == pytest.approx(10.0, abs=1e-3) and errors["fy_error_px"] == pytest.approx(0.0, abs=1e-3)
+    assert errors["focal_error_percent"] == pytest.approx(50 * 10 / 520, rel=1e-4)
+    assert errors["principal_point_error_px"] == pytest.approx(5.0, abs=1e-3)
     json.dumps(errors)
 
 
@@ -146,15 +151,19 @@ def test_absolute_pose_error_matches_an_independent_umeyama():
 def test_report_is_json_table_and_plot(tmp_path):
     truth_poses = random_trajectory(15, seed=5)
     estimate = perturb(truth_poses, seed=6)
+    stamps = np.arange(15, dtype=np.int64) * 100_000_000
     truth = CameraCalibration(160, 120, np.array([[150.0, 0, 80.0], [0, 150.0, 60.0], [0, 0, 1]]), [-0.1, 0.01, 0, 0, 0])
-    report = {"camera": ev.camera_errors(CameraModel(160, 120), truth), "odometry": ev.odometry_errors(estimate, truth_poses)}
-    text = json.dumps(report)
-    assert json.loads(text)["odometry"]["rpe"]["translation_m"]["count"] == 14
+    report = {"model": "test", **ev.trajectory_errors(stamps, estimate, truth_poses)}
+    report["calibration"] = ev.calibration_errors(CameraModel(160, 120), truth)
+    assert report["duration_s"] == pytest.approx(1.4)
+    assert report["ape_sim3"]["rmse"] == report["ape_sim3"]["translation_m"]["rmse"]
+    assert report["ape_se3"]["rmse"] >= report["ape_sim3"]["rmse"] - 1e-12  # a similarity fits at least as well
+    assert json.loads(json.dumps(report))["rpe"]["translation_m"]["count"] == 14
     table = ev.format_report(report)
-    assert "RPE m" in table and f"{report['odometry']['rpe']['translation_m']['rmse']:.4f}" in table
-    assert f"{report['camera']['focal']['fx_px']:.2f}" in table
+    assert "RPE m" in table and f"{report['rpe']['translation_m']['rmse']:.4f}" in table
+    assert f"{report['calibration']['fx_error_px']:.2f}" in table and "model: test" in table
     assert "per_pair" not in json.dumps(ev.summary(report))
-    path = ev.plot_trajectory(estimate, truth_poses, tmp_path / "plots" / "trajectory.png", title="test")
+    path = ev.plot_trajectory(tmp_path / "plots" / "trajectory.png", stamps, estimate, truth_poses, title="test")
     image = cv2.imread(str(path))
     assert image is not None and image.shape[0] > 100 and image.std() > 0
 
