@@ -51,7 +51,6 @@ Dropped frames and resets
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import threading
 import time
@@ -134,29 +133,31 @@ class PoseModel:
                 from nocal_ros.model_store import resolve_model_path
 
                 path = resolve_model_path(checkpoint)
-                model_id = _file_id(path)
             from nocal_ros.checkpoint import load_checkpoint  # the learning core; imported when needed
 
             checkpoint = load_checkpoint(path, device=str(device))
-            if path is None:
-                shipped = getattr(checkpoint, "path", None)
-                model_id = _file_id(Path(shipped)) if shipped else model_id
         metadata = dict(getattr(checkpoint, "metadata", {}) or {})
+        # The sidecar keeps training facts at its top level, the run's config under "config", and
+        # whatever the trainer added (e.g. pose_error_std from validation) under "metadata".
+        facts = {**(metadata.get("config") or {}), **(metadata.get("metadata") or {}), **metadata}
         model = checkpoint.model.to(device).eval()
-        size = _training_size(metadata)
+        size = _training_size(facts)
         cameras = list(getattr(checkpoint, "cameras", []) or [])
         std = dict(DEFAULT_POSE_ERROR_STD)
-        std.update({k: float(v) for k, v in (metadata.get("pose_error_std") or {}).items() if k in std})
-        gap = metadata.get("gap_range") or metadata.get("max_gap")
+        std.update({k: float(v) for k, v in (facts.get("pose_error_std") or {}).items() if k in std})
+        gap = facts.get("gap_range") or facts.get("max_gap")
         max_gap = int(gap[-1] if isinstance(gap, (list, tuple)) else gap or DEFAULT_MAX_GAP)
+        source = getattr(checkpoint, "path", None)
+        if facts.get("weights_sha256"):
+            model_id = f"{Path(source).name if source else 'checkpoint'}@{facts['weights_sha256'][:12]}"
         return cls(
             predict_pose=model.predict_pose,
             input_size=size,
             device=device,
             max_gap=max_gap,
-            model_id=str(metadata.get("model_id") or model_id),
+            model_id=str(facts.get("model_id") or model_id),
             pose_error_std=std,
-            camera=cameras[0] if cameras else None,
+            camera=cameras[0].cpu() if cameras else None,  # only exported, never run per frame
             module=model,
         )
 
@@ -170,14 +171,6 @@ def resolve_device(device: str | torch.device) -> torch.device:
     if str(device).startswith("cuda") and not torch.cuda.is_available():
         raise NocalError(f"device {device!r} requested but CUDA is not available on this machine")
     return torch.device(device)
-
-
-def _file_id(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return f"{path.name}@{digest.hexdigest()[:12]}"
 
 
 def _training_size(metadata: dict) -> tuple[int, int]:

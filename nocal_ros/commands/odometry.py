@@ -103,31 +103,11 @@ class ReplayResult:
         if skipped:
             lines.append("events: " + ", ".join(f"{k} {v}" for k, v in skipped.items()))
         if self.report:
+            from nocal_ros.evaluation import format_report
+
             lines.append(format_report(self.report))
         lines += [f"  {name:<17} {path}" for name, path in self.outputs.items()]
         return "\n".join(lines)
-
-
-def format_report(report: dict) -> str:
-    """A few lines with the headline errors of a report."""
-    lines = []
-    rpe = report.get("rpe") or {}
-    if rpe:
-        lines.append(
-            f"RPE per pair: translation {rpe.get('translation_m', {}).get('rmse', float('nan')) * 100:.2f} cm RMSE, "
-            f"rotation {rpe.get('rotation_deg', {}).get('rmse', float('nan')):.3f} deg RMSE"
-        )
-    for key, label in (("ape_se3", "APE (SE(3) aligned)"), ("ape_sim3", "APE (Sim(3) aligned)")):
-        ape = report.get(key) or {}
-        if ape:
-            lines.append(f"{label}: {ape.get('rmse', float('nan')) * 100:.2f} cm RMSE")
-    calibration = report.get("calibration") or {}
-    if "focal_error_px" in calibration:
-        lines.append(
-            f"focal error {calibration['focal_error_px']:.1f} px ({calibration.get('focal_error_percent', float('nan')):.1f} %), "
-            f"dr {calibration.get('dr', float('nan')):.4f}"
-        )
-    return "\n".join(lines)
 
 
 def _image_count(bag: Path, topic: str) -> int | None:
@@ -249,14 +229,14 @@ def replay_bag(
         frames_in=frames_in, counters=dict(vars(estimator.counters)), model_id=estimator.model_id,
         calibration_residual_px=residual, seconds=seconds,
     )
-    truth = _ground_truth(bag, image_topic, gt_topic, camera_info_topic, max_frames)
+    truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
         replay.report = evaluate_replay(replay, truth, calibration, estimator)
         outputs["report.json"] = out_dir / "report.json"
         temporary = out_dir / ".report.json.tmp"
         temporary.write_text(json.dumps(replay.report, indent=2, sort_keys=True) + "\n", encoding="utf-8")
         os.replace(temporary, outputs["report.json"])
-        if plot and len(replay.stamps_ns) >= 2:
+        if plot and len(truth.stamps_ns) >= 2:
             outputs["trajectory.png"] = out_dir / "trajectory.png"
             plot_replay(replay, truth, outputs["trajectory.png"])
     return replay
@@ -269,28 +249,26 @@ class GroundTruth:
     calibration: Any  # CameraCalibration at native resolution, or None
 
 
-def _ground_truth(bag: Path, image_topic: str, gt_topic: str | None, camera_info_topic: str | None,
-                  max_frames: int | None) -> GroundTruth | None:
-    """True camera poses at the image stamps and the true calibration, when the bag has them."""
-    if not gt_topic:
-        return None
-    from nocal_ros.data.bags import read_sequence
+def _ground_truth(bag: Path, gt_topic: str | None, camera_info_topic: str | None, stamps_ns: np.ndarray) -> GroundTruth | None:
+    """True camera poses at the estimate's stamps and the true calibration, when the bag has them."""
+    from nocal_ros.data.bags import _open_bag, read_poses, read_sequence
 
-    # Images are decoded again here; shrunk to a few pixels they cost little and free the memory.
-    sequence = read_sequence(
-        bag, image_topic=image_topic, pose_source="none", gt_topic=gt_topic,
-        camera_info_topic=camera_info_topic, resize=(4, 4), max_frames=max_frames,
-    )
-    if sequence.ground_truth is None:
+    if not gt_topic or len(stamps_ns) < 2:
         return None
-    valid = np.isfinite(sequence.ground_truth).all(axis=(1, 2))
+    with _open_bag(bag) as reader:
+        topics = set(reader.topics)
+    if gt_topic not in topics:
+        return None
+    T_w_cam = read_poses(bag, gt_topic, stamps_ns)
+    valid = np.isfinite(T_w_cam).all(axis=(1, 2))
     if valid.sum() < 2:
         return None
-    calibration = sequence.calibration
-    native = sequence.extras.get("native_size")
-    if calibration is not None and native is not None and (calibration.width, calibration.height) != tuple(native):
-        calibration = calibration.scaled(*native)
-    return GroundTruth(sequence.stamps_ns[valid], sequence.ground_truth[valid], calibration)
+    calibration = None
+    if camera_info_topic and camera_info_topic in topics:
+        calibration = read_sequence(
+            bag, pose_source="none", gt_topic=None, camera_info_topic=camera_info_topic, max_frames=1
+        ).calibration
+    return GroundTruth(stamps_ns[valid], T_w_cam[valid], calibration)
 
 
 def _matched(replay: ReplayResult, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -299,26 +277,30 @@ def _matched(replay: ReplayResult, truth: GroundTruth) -> tuple[np.ndarray, np.n
     estimate = replay.T_odom_cam[est_index]
     T_gt = truth.T_w_cam[gt_index]
     if len(common):
-        # Express both in the first matched camera frame, so unaligned errors mean something too.
+        # Both in the first matched camera frame, so the unaligned start is shared.
         estimate = invert_transform(estimate[0]) @ estimate
         T_gt = invert_transform(T_gt[0]) @ T_gt
     return common, estimate, T_gt
 
 
 def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, estimator: Any) -> dict:
-    """RPE and APE (with and without scale alignment), focal and dr errors, as a JSON-able dict."""
+    """RPE, APE with SE(3) and Sim(3) alignment, and the camera errors (focal, principal point, dr)
+    with the fit residual of the published distortion model.
+
+    Per-pair series are left out of the report (a long bag would make it huge); the plot has them.
+    """
     from nocal_ros import evaluation
 
     stamps, estimate, T_gt = _matched(replay, truth)
     report: dict[str, Any] = {
-        "model": replay.model_id,
-        "frames": int(replay.frames_in),
+        "bag_frames": int(replay.frames_in),
         "poses": int(len(replay.stamps_ns)),
         "evaluated_poses": int(len(stamps)),
+        "model": replay.model_id,
         "events": {k: int(v) for k, v in replay.counters.items()},
     }
     if len(stamps) >= 2:
-        report.update(evaluation.trajectory_errors(stamps, estimate, T_gt))
+        report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
     camera = estimator.model.camera
     if truth.calibration is not None and camera is not None:
         report["calibration"] = evaluation.calibration_errors(camera, truth.calibration)
@@ -329,7 +311,7 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
 
 
 def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
-    """Top view of estimate vs truth (after Sim(3) alignment) and the position error over time."""
+    """Top view of estimate vs truth and the per-pair error over time."""
     from nocal_ros import evaluation
 
     stamps, estimate, T_gt = _matched(replay, truth)
