@@ -179,3 +179,100 @@ def test_bad_poses_and_missing_evo_are_reported(monkeypatch):
     monkeypatch.setitem(sys.modules, "evo.core", None)
     with pytest.raises(ev.MissingDependencyError, match="pip install evo"):
         ev.relative_pose_error(truth, truth)
+
+
+# --------------------------------------------------------------------------------------------------
+# ``nocal eval`` end to end on a real bag (written and read by rosbags) and a saved checkpoint
+# --------------------------------------------------------------------------------------------------
+
+from nocal_ros.checkpoint import save_checkpoint  # noqa: E402
+from nocal_ros.cli import main  # noqa: E402
+from nocal_ros.data.bags import write_sequence  # noqa: E402
+from nocal_ros.data.sequence import FrameSequence  # noqa: E402
+from nocal_ros.model import NOCaL  # noqa: E402
+
+EVAL_WIDTH, EVAL_HEIGHT = 160, 120
+TRAIN_SIZE = (40, 30)
+EVAL_CAMERA = CameraCalibration(
+    EVAL_WIDTH, EVAL_HEIGHT, np.array([[140.0, 0, 81.0], [0, 138.0, 58.5], [0, 0, 1]]), np.array([-0.15, 0.03, 0.001, 0.0, 0.0])
+)
+SMALL_MODEL = {"encoder_channels": [8] * 7, "latent_dim": 16, "scene_width": 16, "pose_width": 16,
+               "hyper_width": 16, "hyper_depth": 1, "hyper_rank": 4, "lfn_width": 16, "lfn_layers": 2}
+
+
+def textured_frames(n: int, seed: int = 0) -> np.ndarray:
+    """Frames that differ (a smooth random texture panning), so the pose head sees real pairs."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (EVAL_WIDTH * 2, EVAL_HEIGHT * 2), interpolation=cv2.INTER_CUBIC)
+    return np.stack([texture[k * 3 : k * 3 + EVAL_HEIGHT, k * 5 : k * 5 + EVAL_WIDTH] for k in range(n)])
+
+
+@pytest.fixture(scope="module")
+def bag_and_model(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    n = 8
+    truth = random_trajectory(n, seed=0)
+    truth[3] = np.nan  # a frame without ground truth: pairs bridge it
+    sequence = FrameSequence(
+        images=textured_frames(n), stamps_ns=1_000_000_000 + 100_000_000 * np.arange(n, dtype=np.int64),
+        arm_poses=np.full((n, 4, 4), np.nan), ground_truth=truth, calibration=EVAL_CAMERA, name="eval test",
+    )
+    bag = write_sequence(sequence, root / "bag")
+    torch.manual_seed(0)
+    model = NOCaL(SMALL_MODEL)
+    camera = CameraModel(EVAL_WIDTH, EVAL_HEIGHT)  # freshly initialised: f = width, centred, no distortion
+    path = save_checkpoint(root / "model.safetensors", model, [camera], metadata={"training_resolution": list(TRAIN_SIZE)})
+    return bag, path, sequence, model
+
+
+def test_eval_reports_camera_and_pose_errors_against_the_bags_ground_truth(bag_and_model, tmp_path, capsys):
+    bag, model_path, sequence, model = bag_and_model
+    report_path = tmp_path / "out" / "report.json"
+    plot_path = tmp_path / "out" / "trajectory.png"
+    assert main(["eval", "--model", str(model_path), "--bag", str(bag), "--json", str(report_path), "--plot", str(plot_path)]) == 0
+    printed = capsys.readouterr().out
+    report = json.loads(report_path.read_text())
+    assert "RPE m" in printed and "focal error" in printed
+
+    # Camera: an untrained camera has f = width = 160 against the true 140 / 138.
+    calibration = report["calibration"]
+    assert calibration["fx_error_px"] == pytest.approx(20.0, abs=1e-3)
+    assert calibration["fy_error_px"] == pytest.approx(22.0, abs=1e-3)
+    assert calibration["principal_point_error_px"] == pytest.approx(np.hypot(81.0 - 79.5, 58.5 - 59.5), abs=1e-3)
+    assert calibration["fit_residual_px"] < 1e-6  # a pinhole fits a pinhole exactly
+    assert calibration["dr"] > 0.01
+
+    # Odometry: frame 3 has no ground truth, so the pairs are (0,1), (1,2), (2,4), (4,5), (5,6), (6,7).
+    frames = [0, 1, 2, 4, 5, 6, 7]
+    assert report["pairs"] == 6 and report["max_pair_gap"] == 2 and report["input_size"] == "40x30"
+    # Independent: run the pose head on INTER_AREA-resized frames and compare poses by hand.
+    small = np.stack([cv2.resize(im, TRAIN_SIZE, interpolation=cv2.INTER_AREA) for im in sequence.images])
+    tensor = torch.from_numpy(small).permute(0, 3, 1, 2).float() / 255.0
+    with torch.no_grad():
+        predicted = model.predict_pose(tensor[frames[:-1]], tensor[frames[1:]]).double().numpy()
+    expected_t, expected_r = [], []
+    for k, (i, j) in enumerate(zip(frames[:-1], frames[1:])):
+        E = g.invert_transform(g.relative_transform(sequence.ground_truth[i], sequence.ground_truth[j])) @ predicted[k]
+        expected_t.append(np.linalg.norm(E[:3, 3]))
+        expected_r.append(g.rotation_angle_deg(E[:3, :3]))
+    np.testing.assert_allclose(report["rpe"]["translation_m_per_pair"], expected_t, atol=1e-5)
+    np.testing.assert_allclose(report["rpe"]["rotation_deg_per_pair"], expected_r, atol=1e-3)
+    assert report["ape_sim3"]["count"] == 7 and report["duration_s"] == pytest.approx(0.7)
+    image = cv2.imread(str(plot_path))
+    assert image is not None and image.std() > 0
+
+
+def test_eval_refuses_bad_inputs_in_one_line(bag_and_model, tmp_path, capsys):
+    bag, model_path, _, _ = bag_and_model
+    assert main(["eval", "--model", str(tmp_path / "missing.safetensors"), "--bag", str(bag)]) == 1
+    assert "missing.safetensors" in capsys.readouterr().err
+    assert main(["eval", "--model", str(model_path), "--bag", str(bag), "--camera-index", "3"]) == 1
+    assert "no camera 3" in capsys.readouterr().err
+    assert main(["eval", "--model", str(model_path), "--bag", str(bag), "--gt-topic", "/none",
+                 "--camera-info-topic", "/none"]) == 1
+    error = capsys.readouterr().err
+    assert "nothing to evaluate" in error and str(bag) in error
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(b"\x89MCAP0\r\n garbage")
+    assert main(["eval", "--model", str(model_path), "--bag", str(corrupt)]) == 1
+    assert "corrupt.mcap" in capsys.readouterr().err
