@@ -295,3 +295,33 @@ def test_real_pose_head_sees_the_resized_frames_in_order():
     for k in range(2):
         np.testing.assert_allclose(results[k + 1].T_prev_curr, expected[k], atol=1e-5)
     np.testing.assert_allclose(results[2].T_odom_base, expected[0] @ expected[1], atol=1e-5)
+
+
+def test_mailbox_keeps_only_the_newest_frame_and_counts_the_rest():
+    import threading
+
+    from nocal_ros.odometry import FrameMailbox
+
+    latest = FrameMailbox(latest_only=True)
+    for k in range(5):
+        latest.put(k)
+    assert latest.get(timeout=0) == 4 and latest.get(timeout=0) is None
+    assert (latest.received, latest.dropped) == (5, 4)
+
+    fifo = FrameMailbox(latest_only=False, capacity=3)
+    for k in range(5):
+        fifo.put(k)
+    assert [fifo.get(timeout=0) for _ in range(3)] == [2, 3, 4] and fifo.dropped == 2
+
+    # A waiting consumer wakes for a new frame, and for close().
+    got = []
+    consumer = threading.Thread(target=lambda: got.append(latest.get(timeout=5)))
+    consumer.start()
+    latest.put("frame")
+    consumer.join(timeout=5)
+    assert got == ["frame"]
+    consumer = threading.Thread(target=lambda: got.append(latest.get(timeout=5)))
+    consumer.start()
+    latest.close()
+    consumer.join(timeout=1)
+    assert not consumer.is_alive() and got[-1] is None

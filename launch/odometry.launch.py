@@ -1,0 +1,44 @@
+"""Launch the odometry node with config/odometry.yaml.
+
+    ros2 launch nocal_ros odometry.launch.py image:=/camera/image_raw
+    ros2 launch nocal_ros odometry.launch.py image:=/cam/image_raw model_path:=~/.ros/nocal_ros/models
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_params = os.path.join(get_package_share_directory("nocal_ros"), "config", "odometry.yaml")
+    arguments = [
+        DeclareLaunchArgument("params_file", default_value=default_params, description="odometry parameters"),
+        DeclareLaunchArgument("image", default_value="/camera/image_raw", description="image topic to subscribe to"),
+        DeclareLaunchArgument("model_path", default_value="", description="checkpoint or model store ('' = shipped)"),
+        DeclareLaunchArgument("device", default_value="auto", description="auto, cpu or cuda"),
+        DeclareLaunchArgument("base_frame", default_value="base_link", description="child frame of odom"),
+    ]
+    node = Node(
+        package="nocal_ros",
+        executable="odometry_node",
+        name="odometry_node",
+        output="screen",
+        parameters=[
+            LaunchConfiguration("params_file"),
+            {  # typed as strings: an empty model_path must stay "" (the shipped model), not None
+                "model_path": ParameterValue(LaunchConfiguration("model_path"), value_type=str),
+                "device": ParameterValue(LaunchConfiguration("device"), value_type=str),
+                "base_frame": ParameterValue(LaunchConfiguration("base_frame"), value_type=str),
+            },
+        ],
+        remappings=[
+            ("image", LaunchConfiguration("image")),
+            ("image/compressed", [LaunchConfiguration("image"), "/compressed"]),
+        ],
+    )
+    return LaunchDescription([*arguments, node])
