@@ -215,3 +215,26 @@ def test_cli_reports_a_missing_model_in_one_line(tmp_path, capsys):
     assert main(["odometry", str(bag), "--out", str(tmp_path / "out"), "--model", str(model), "--no-progress"]) == 1
     error = capsys.readouterr().err.strip()
     assert len(error.splitlines()) == 1 and str(model) in error
+
+
+def test_demo_renders_an_unseen_camera_and_reports_errors(tmp_path, capsys):
+    from nocal_ros.checkpoint import save_checkpoint
+    from nocal_ros.cli import main
+    from nocal_ros.model import NOCaL
+
+    checkpoint = save_checkpoint(tmp_path / "model.safetensors", NOCaL(SMALL_MODEL), [CameraModel(WIDTH, HEIGHT)],
+                                 metadata={"training_resolution": [40, 30]})
+    out = tmp_path / "demo"
+    arguments = ["demo", "--out", str(out), "--model", str(checkpoint), "--frames", "5", "--size", "64x48", "--no-progress"]
+    assert main(arguments) == 0
+    printed = capsys.readouterr().out
+    assert "RPE" in printed and "reporting no motion at all" in printed and str(out / "result") in printed
+    report = json.loads((out / "result" / "report.json").read_text())
+    assert report["evaluated_poses"] == 5 and report["calibration"]["fx_true"] == pytest.approx(0.83 * 64)
+    assert main(arguments) == 0  # a second run replaces the demo's own directory
+
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    assert main(["demo", "--out", str(foreign), "--model", str(checkpoint), "--frames", "3", "--no-progress"]) == 1
+    assert (foreign / "notes.txt").read_text() == "keep me"
