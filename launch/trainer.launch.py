@@ -13,21 +13,26 @@ from launch_ros.actions import Node
 
 
 def generate_launch_description() -> LaunchDescription:
-    default_params = os.path.join(get_package_share_directory("nocal_ros"), "config", "trainer.yaml")
+    share = get_package_share_directory("nocal_ros")
+    default_params = os.path.join(share, "config", "trainer.yaml")
     params_file = LaunchConfiguration("params_file")
     output_store = LaunchConfiguration("output_store")
     reload_service = LaunchConfiguration("reload_service")
+    training_config = LaunchConfiguration("training_config")
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=default_params, description="trainer parameters"),
         DeclareLaunchArgument("output_store", default_value=os.path.expanduser("~/.ros/nocal_ros/models"),
                               description="model store shared with the odometry node's model_path"),
         DeclareLaunchArgument("reload_service", default_value="/odometry_node/reload_model",
                               description="odometry node's reload service (empty: do not call)"),
+        DeclareLaunchArgument("training_config", default_value=os.path.join(share, "config", "finetune.yaml"),
+                              description="training recipe YAML for fine-tuning"),
         Node(
             package="nocal_ros",
             executable="trainer_node",
             name="trainer_node",
             output="screen",
-            parameters=[params_file, {"output_store": output_store, "reload_service": reload_service}],
+            parameters=[params_file, {"output_store": output_store, "reload_service": reload_service,
+                                     "training_config": training_config}],
         ),
     ])

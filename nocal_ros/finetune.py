@@ -71,7 +71,10 @@ class FinetuneConfig:
         keep_versions: older versions beyond this many are pruned after publishing (0: keep all).
         camera_start: "reset" (f = width, centred principal point: a new, unknown camera) or "init"
             (the initial model's camera of the same size: a known camera that moved or heated).
-        training: further keys for the training config (learning rates, batch size, stages...).
+        training_config: a training YAML (e.g. ``config/finetune.yaml``, the fine-tuning recipe);
+            empty: the training defaults with a curriculum scaled to ``steps``.
+        training: keys that override the training YAML (learning rates, batch size, stages...);
+            ``steps`` and ``seed`` above always win.
     """
 
     bags: list[str]
@@ -91,6 +94,7 @@ class FinetuneConfig:
     threads: int = 0
     keep_versions: int = 5
     camera_start: str = "reset"
+    training_config: str = ""
     training: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -284,10 +288,7 @@ def run_finetune(
     initial = checkpoint.load_checkpoint(init_path, device="cpu")  # train() moves it
     stop_if_asked("loading the model")
 
-    train_config = dict(config.training)
-    train_config.setdefault("steps", int(config.steps))
-    train_config.setdefault("seed", int(config.seed))
-    train_config.setdefault("curriculum", finetune_curriculum(int(train_config["steps"])))
+    train_config = training_settings(config)
     cameras = _starting_cameras(config, initial, sequences)
     metadata = {
         "kind": "finetune",
@@ -330,6 +331,36 @@ def run_finetune(
         seconds=round(time.monotonic() - started, 3),
         final=final,
     )
+
+
+def training_settings(config: FinetuneConfig) -> dict:
+    """The training config of a run: the training YAML, then ``config.training``, then steps and seed.
+
+    The curriculum is scaled to ``steps`` when neither source gives one, and when the YAML's was
+    written for a different number of steps (so ``steps: 300`` on a 3000-step recipe still reaches
+    the focal and distortion stages).
+    """
+    settings: dict = {}
+    if config.training_config:
+        from nocal_ros.commands.train import load_config
+
+        settings = load_config(Path(os.path.expanduser(config.training_config)))
+    recipe_steps = int(settings.get("steps") or 0)
+    for key, value in config.training.items():
+        if isinstance(value, dict) and isinstance(settings.get(key), dict):
+            settings[key] = {**settings[key], **value}
+        else:
+            settings[key] = value
+    steps = int(config.steps)
+    if "curriculum" not in config.training:
+        curriculum = settings.get("curriculum")
+        if not curriculum:
+            settings["curriculum"] = finetune_curriculum(steps)
+        elif recipe_steps and recipe_steps != steps:
+            settings["curriculum"] = {k: max(1, round(int(v) * steps / recipe_steps)) for k, v in curriculum.items()}
+    settings["steps"] = steps
+    settings["seed"] = int(config.seed)
+    return settings
 
 
 def finetune_curriculum(steps: int) -> dict[str, int]:

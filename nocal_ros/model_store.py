@@ -281,9 +281,7 @@ class ModelStore:
             raise
 
     def _commit(self, staging: Path, metadata: dict) -> ModelVersion:
-        model_path = staging / MODEL_NAME
-        if not model_path.is_file():
-            raise CheckpointError(f"{staging}: nothing to publish (no {MODEL_NAME} written)")
+        model_name = _model_file_name(staging)
         _pause_point("staging-written")
         files = {}
         for path in sorted(p for p in staging.rglob("*") if p.is_file()):
@@ -291,7 +289,7 @@ class ModelStore:
             files[path.relative_to(staging).as_posix()] = {"size": path.stat().st_size, "sha256": _sha256(path)}
         manifest = {
             "format_version": FORMAT_VERSION,
-            "model": MODEL_NAME,
+            "model": model_name,
             "files": files,
             "created_unix": time.time(),
             "metadata": metadata,
@@ -302,7 +300,7 @@ class ModelStore:
         final = self._rename_to_next_version(staging)
         _fsync_dir(self.root)
         _pause_point("version-renamed")
-        pointer = {"version": final.name, "model": MODEL_NAME, "sha256": files[MODEL_NAME]["sha256"]}
+        pointer = {"version": final.name, "model": model_name, "sha256": files[model_name]["sha256"]}
         _write_json_atomic(self.pointer_path, pointer, pause_before_replace="pointer-tmp-written")
         log.info("published model %s", final)
         return ModelVersion(final.name, final, manifest)
@@ -326,11 +324,22 @@ class ModelStore:
         """Copy an existing checkpoint (and its ``.json`` sidecar) into the store as a new version."""
         source = resolve_model_path(checkpoint_path)
         with self.new_version(metadata) as staging:
-            shutil.copyfile(source, staging / MODEL_NAME)
+            # Names are kept: a checkpoint's sidecar records its weights file's name.
+            shutil.copyfile(source, staging / source.name)
             sidecar = source.with_suffix(".json")
             if sidecar.is_file():
-                shutil.copyfile(sidecar, staging / Path(MODEL_NAME).with_suffix(".json"))
+                shutil.copyfile(sidecar, staging / sidecar.name)
         return self.last_published
+
+
+def _model_file_name(version_dir: Path) -> str:
+    """``model.safetensors`` if present, else the directory's only ``.safetensors`` file."""
+    if (version_dir / MODEL_NAME).is_file():
+        return MODEL_NAME
+    candidates = sorted(p.name for p in version_dir.glob("*.safetensors") if p.is_file())
+    if len(candidates) != 1:
+        raise CheckpointError(f"{version_dir}: nothing to publish (expected {MODEL_NAME} or one .safetensors file, found {candidates or 'none'})")
+    return candidates[0]
 
 
 def is_store(path: str | os.PathLike) -> bool:
@@ -343,7 +352,8 @@ def is_store(path: str | os.PathLike) -> bool:
 def resolve_model_path(path: str | os.PathLike) -> Path:
     """Turn a model argument into the checkpoint file to load.
 
-    Accepts a ``.safetensors`` file, a version directory (holds ``model.safetensors``), or a store
+    Accepts a ``.safetensors`` file, a version directory (its manifest names the model file; or a
+    directory holding ``model.safetensors``), or a store
     directory (follows ``latest.json``). Raises CheckpointError naming the path when none applies.
     """
     path = Path(path)
@@ -356,6 +366,11 @@ def resolve_model_path(path: str | os.PathLike) -> Path:
             version = ModelStore(path, create=False).latest()
             assert version is not None
             return version.model_path
+        if (path / MANIFEST_NAME).is_file():  # a version directory
+            store = ModelStore(path.parent, create=False)
+            version = ModelVersion(path.name, path, store._read_manifest(path))
+            if version.model_path.is_file():
+                return version.model_path
         if (path / MODEL_NAME).is_file():
             return path / MODEL_NAME
         if is_store(path):

@@ -46,6 +46,7 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "seed": (0, "random seed"),
     "threads": (0, "torch CPU threads in the worker (0: default)"),
     "keep_versions": (5, "versions kept in the store (0: all)"),
+    "training_config": ("", "training YAML, e.g. the package's config/finetune.yaml; empty: training defaults"),
     "camera_start": ("reset", "reset: f = width (a new camera) | init: the initial model's camera (a known camera that moved)"),
     "reload_service": ("/odometry_node/reload_model", "odometry node's std_srvs/Trigger reload service; empty: do not call"),
     "reload_timeout_s": (10.0, "how long to wait for the reload service to appear"),
@@ -110,6 +111,7 @@ class TrainerNode(Node):
             threads=int(self._param("threads")),
             keep_versions=int(self._param("keep_versions")),
             camera_start=str(self._param("camera_start")),
+            training_config=os.path.expanduser(str(self._param("training_config"))),
         )
 
     # ---- services ----------------------------------------------------------------------------
