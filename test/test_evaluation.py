@@ -188,7 +188,7 @@ def test_bad_poses_and_missing_evo_are_reported(monkeypatch):
 from nocal_ros.checkpoint import save_checkpoint  # noqa: E402
 from nocal_ros.cli import main  # noqa: E402
 from nocal_ros.data.bags import write_sequence  # noqa: E402
-from nocal_ros.data.sequence import FrameSequence  # noqa: E402
+from nocal_ros.data.synthetic import render_sequence  # noqa: E402
 from nocal_ros.model import NOCaL  # noqa: E402
 
 EVAL_WIDTH, EVAL_HEIGHT = 160, 120
@@ -200,23 +200,12 @@ SMALL_MODEL = {"encoder_channels": [8] * 7, "latent_dim": 16, "scene_width": 16,
                "hyper_width": 16, "hyper_depth": 1, "hyper_rank": 4, "lfn_width": 16, "lfn_layers": 2}
 
 
-def textured_frames(n: int, seed: int = 0) -> np.ndarray:
-    """Frames that differ (a smooth random texture panning), so the pose head sees real pairs."""
-    rng = np.random.default_rng(seed)
-    texture = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (EVAL_WIDTH * 2, EVAL_HEIGHT * 2), interpolation=cv2.INTER_CUBIC)
-    return np.stack([texture[k * 3 : k * 3 + EVAL_HEIGHT, k * 5 : k * 5 + EVAL_WIDTH] for k in range(n)])
-
-
 @pytest.fixture(scope="module")
 def bag_and_model(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
     n = 8
-    truth = random_trajectory(n, seed=0)
-    truth[3] = np.nan  # a frame without ground truth: pairs bridge it
-    sequence = FrameSequence(
-        images=textured_frames(n), stamps_ns=1_000_000_000 + 100_000_000 * np.arange(n, dtype=np.int64),
-        arm_poses=np.full((n, 4, 4), np.nan), ground_truth=truth, calibration=EVAL_CAMERA, name="eval test",
-    )
+    sequence = render_sequence(EVAL_CAMERA, n, seed=0, split="test")
+    sequence.ground_truth[3] = np.nan  # a frame without ground truth: pairs bridge it
     bag = write_sequence(sequence, root / "bag")
     torch.manual_seed(0)
     model = NOCaL(SMALL_MODEL)
@@ -257,7 +246,7 @@ def test_eval_reports_camera_and_pose_errors_against_the_bags_ground_truth(bag_a
         expected_r.append(g.rotation_angle_deg(E[:3, :3]))
     np.testing.assert_allclose(report["rpe"]["translation_m_per_pair"], expected_t, atol=1e-5)
     np.testing.assert_allclose(report["rpe"]["rotation_deg_per_pair"], expected_r, atol=1e-3)
-    assert report["ape_sim3"]["count"] == 7 and report["duration_s"] == pytest.approx(0.7)
+    assert report["ape_sim3"]["count"] == 7 and report["duration_s"] == pytest.approx(0.7)  # 10 fps
     image = cv2.imread(str(plot_path))
     assert image is not None and image.std() > 0
 
