@@ -151,10 +151,11 @@ def _newton_undistort(target, D, model: str):
                 break
         previous = error[active]
         x[active], residual[active], error[active] = xa, ra, ea
-        # Newton near a root cuts the error by orders of magnitude per step; points whose error
-        # barely moves are crawling towards a fold with no root behind it. Give up on them (and on
-        # those no step improves); the final check marks them NaN.
-        active = active[(ea > _UNDISTORT_TOLERANCE**2) & ~pending & (ea < 0.5 * previous)]
+        # Past a fold there is no root: Newton points at the fold, the Jacobian is nearly singular,
+        # and only tiny steps help. Give up on points that needed ten halvings or made no progress
+        # (an overshooting first step still counts as progress); the final check marks them NaN.
+        stalled = pending | (alpha < 2.0**-10) | (ea > 0.999 * previous)
+        active = active[(ea > _UNDISTORT_TOLERANCE**2) & ~stalled]
     return x
 
 

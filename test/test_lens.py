@@ -62,8 +62,8 @@ def test_undistorted_normalised_matches_opencv_undistort_points():
 
 def test_beyond_the_fold_is_nan_not_a_wrong_ray():
     # k1 = -0.5: r_d = r (1 - 0.5 r^2) peaks at r_d = 0.5443 (r = 0.8165); nothing images beyond.
-    camera = CameraCalibration.pinhole(640, 480, fx=300.0, D=[-0.5, 0, 0, 0, 0])
-    pixels = pixel_grid(640, 480).reshape(-1, 2)
+    camera = CameraCalibration.pinhole(320, 240, fx=150.0, D=[-0.5, 0, 0, 0, 0])
+    pixels = pixel_grid(320, 240).reshape(-1, 2)
     radius = np.linalg.norm(camera.distorted_normalised(pixels), axis=1)
     rays = camera.unproject(pixels)
     valid = np.isfinite(rays).all(1)
