@@ -279,6 +279,7 @@ class OdometryEstimator:
             clearly better), ``"plumb_bob"`` or ``"rational_polynomial"``.
         precision: ``"fp32"``, or ``"fp16"`` / ``"bf16"`` autocast on CUDA.
         cuda_graphs: capture the pose head in CUDA graphs on CUDA (falls back to eager if capture fails).
+        channels_last: run the convolutions in channels-last layout (faster on CPU; see BENCHMARKS.md).
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -293,8 +294,10 @@ class OdometryEstimator:
         distortion_model: str = "auto",
         precision: str = "fp32",
         cuda_graphs: bool = True,
+        channels_last: bool = True,
     ) -> None:
         self._lock = threading.RLock()
+        self.channels_last = channels_last
         self.device_request = device
         self.frame_period_s = frame_period_s
         self.distortion_model = distortion_model
@@ -313,7 +316,7 @@ class OdometryEstimator:
 
     def _load(self, checkpoint: Any) -> None:
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
-        runner = _PoseRunner(model, precision=self.precision, cuda_graphs=self.cuda_graphs)
+        runner = _PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
         self.model, self._runner = model, runner
         self._calibration_cache.clear()
 
@@ -325,7 +328,7 @@ class OdometryEstimator:
         the previous frame was preprocessed for the old model.
         """
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
-        runner = _PoseRunner(model, precision=self.precision, cuda_graphs=self.cuda_graphs)
+        runner = _PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
         with self._lock:
             self.model, self._runner = model, runner
             self._calibration_cache.clear()

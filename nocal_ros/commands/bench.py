@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int, default=200, help="timed runs per figure")
     parser.add_argument("--warmup", type=int, default=20, help="untimed runs first")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: leave torch's default)")
+    parser.add_argument("--layout", default="channels_last", choices=("channels_last", "contiguous"),
+                        help="memory layout of the estimator's convolutions")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
 
 
@@ -133,12 +135,12 @@ def bench_pose_head(pose_model, iterations: int, warmup: int) -> dict[str, Any]:
 
 
 def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup: int,
-                    precision: str = "fp32", cuda_graphs: bool = True) -> tuple[dict[str, Any], np.ndarray]:
+                    precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True) -> tuple[dict[str, Any], np.ndarray]:
     """Per-frame latency of decode + OdometryEstimator.process; also returns the estimated poses."""
     from nocal_ros.data.bags import decode_image
     from nocal_ros.odometry import OdometryEstimator
 
-    estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs)
+    estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs, channels_last=channels_last)
     frames = _frames(native, 16)
     messages = [_image_message(frame, 0) for frame in frames]
     period = 33_333_333
@@ -154,7 +156,8 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
 
     ms = _time(step, pose_model.device, iterations, warmup)
     stats = _stats(ms)
-    stats.update(precision=precision, cuda_graphs=bool(getattr(estimator._runner, "graphs", None)))
+    stats.update(precision=precision, cuda_graphs=bool(getattr(estimator._runner, "graphs", None)),
+                 layout="channels_last" if channels_last else "contiguous")
     return stats, np.asarray(poses)
 
 
@@ -190,11 +193,15 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         pose_model, source = _pose_model(args, device)
         entry: dict[str, Any] = {"model": pose_model.model_id, "model_source": source,
                                  "input": list(pose_model.input_size)}
+        layout = args.layout == "channels_last"
+        # The pose head alone first: the estimator converts the model's weights to its layout.
         entry["pose_head"] = bench_pose_head(pose_model, args.iterations, args.warmup)
-        entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup)
+        entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup, channels_last=layout)
         if device.type == "cuda":
-            entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup, cuda_graphs=False)
-            entry["estimator_fp16"], poses16 = bench_estimator(pose_model, native, args.iterations, args.warmup, precision="fp16")
+            entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
+                                                          cuda_graphs=False, channels_last=layout)
+            entry["estimator_fp16"], poses16 = bench_estimator(pose_model, native, args.iterations, args.warmup,
+                                                               precision="fp16", channels_last=layout)
             entry["estimator_fp16"]["difference_vs_fp32"] = _pose_difference(poses16, poses32)
         report["devices"][name] = entry
     return report
@@ -220,7 +227,7 @@ def format_bench(report: dict[str, Any]) -> str:
                     d = e["difference_vs_fp32"]
                     extra = f" (vs fp32: {d['max_translation_mm']:.3f} mm, {d['max_rotation_deg']:.4f} deg max)"
                 lines.append(f"  {label + ':':<22}median {e['median_ms']:.3f} ms, p90 {e['p90_ms']:.3f} ms per frame "
-                             f"(decode + resize + pose head + integration){extra}")
+                             f"(decode + resize + pose head + integration; {e['layout']}){extra}")
     return "\n".join(lines)
 
 

@@ -54,12 +54,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
     from nocal_ros.odometry import OdometryEstimator
 
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     T_base_cam = None
     if args.base_to_camera:
         x, y, z, qx, qy, qz, qw = args.base_to_camera

@@ -18,7 +18,8 @@ Parameters (see config/odometry.yaml):
         frames (the mailbox), false = process every frame in order (a bounded queue of queue_size)
     frame_period: camera frame period in s (0 = from the stamps);  distortion_model: auto | plumb_bob
         | rational_polynomial;  tf_timeout: seconds to wait for base -> camera at a frame;
-        diagnostics_period: seconds.
+        diagnostics_period: seconds;  threads: torch CPU threads (0 = torch's default; 1 is fastest
+        for one pair at a time on small loaded machines, see BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -71,6 +73,7 @@ PARAMETERS: dict[str, Any] = {
     "tf_timeout": 0.0,
     "diagnostics_period": 1.0,
     "compressed": False,
+    "threads": 0,
 }
 
 
@@ -82,6 +85,8 @@ class OdometryNode(Node):
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default)
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        if int(p["threads"]) > 0:
+            torch.set_num_threads(int(p["threads"]))
         self.odom_frame = str(p["odom_frame"])
         self.base_frame = str(p["base_frame"])
         self.camera_frame = str(p["camera_frame"])
