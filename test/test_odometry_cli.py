@@ -238,3 +238,17 @@ def test_demo_renders_an_unseen_camera_and_reports_errors(tmp_path, capsys):
     (foreign / "notes.txt").write_text("keep me")
     assert main(["demo", "--out", str(foreign), "--model", str(checkpoint), "--frames", "3", "--no-progress"]) == 1
     assert (foreign / "notes.txt").read_text() == "keep me"
+
+
+def test_a_camera_of_another_aspect_ratio_gets_odometry_but_no_camera_info(tmp_path, learnt_camera, caplog):
+    from nocal_ros.commands.odometry import replay_bag
+
+    bag = tmp_path / "in"
+    T_w_c = random_trajectory(3)
+    with BagWriter(bag) as writer:
+        for k in range(3):  # 80x40 (2:1) while the learnt camera is 80x60 (4:3)
+            writer.write_image("/camera/image_raw", START_NS + k * PERIOD_NS, "cam", np.full((40, 80, 3), k, np.uint8))
+    replay = replay_bag(bag, tmp_path / "out", make_estimator(T_w_c, learnt_camera), progress=False)
+    assert len(replay.stamps_ns) == 3 and "aspect ratio" in caplog.text
+    assert not (tmp_path / "out" / "calibration.yaml").exists()
+    assert "/camera_info" not in read_topics(tmp_path / "out" / "odometry")

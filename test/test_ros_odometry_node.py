@@ -66,10 +66,10 @@ class Harness(Node):
         self.camera_info: list[CameraInfo] = []
         self.tf: list = []
         self.diagnostics: list[DiagnosticArray] = []
-        self.create_subscription(Odometry, "odom", self.odometry.append, 50)
-        self.create_subscription(CameraInfo, "camera_info", self.camera_info.append, 50)
+        self.create_subscription(Odometry, "odom", lambda m: self.odometry.append(m), 50)
+        self.create_subscription(CameraInfo, "camera_info", lambda m: self.camera_info.append(m), 50)
         self.create_subscription(TFMessage, "/tf", lambda m: self.tf.extend(m.transforms), 50)
-        self.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+        self.create_subscription(DiagnosticArray, "/diagnostics", lambda m: self.diagnostics.append(m), 10)
         self.static = StaticTransformBroadcaster(self)
         self.static.sendTransform(transform_stamped(T_BASE_CAM, ns_to_stamp(START_NS), "base_link", "camera_optical"))
 

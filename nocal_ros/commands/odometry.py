@@ -181,7 +181,7 @@ def replay_bag(
 ) -> ReplayResult:
     """Run ``estimator`` over a bag's images and write the outputs (see the module notes)."""
     from nocal_ros.data.bags import BagWriter
-    from nocal_ros.odometry import FrameError
+    from nocal_ros.odometry import FrameError, FrameSizeError
 
     bag, out_dir = Path(bag), Path(out_dir)
     if not bag.exists():
@@ -192,6 +192,7 @@ def replay_bag(
     poses_base: list[np.ndarray] = []
     poses_cam: list[np.ndarray] = []
     calibration = residual = None
+    camera_known = estimator.model.camera is not None
     frames_in = 0
     start = time.perf_counter()
     with BagWriter(outputs["odometry"], storage=storage, overwrite=overwrite) as writer:
@@ -205,8 +206,12 @@ def replay_bag(
             except FrameError as error:
                 raise BagError(f"{bag}: {image_topic} frame {frames_in - 1}: {error}") from None
             camera_frame = frame_id or "camera_optical"
-            if calibration is None and estimator.model.camera is not None:
-                calibration, residual = estimator.camera_info(image.shape[1], image.shape[0])
+            if calibration is None and camera_known:
+                try:
+                    calibration, residual = estimator.camera_info(image.shape[1], image.shape[0])
+                except FrameSizeError as error:  # the model's camera has another aspect ratio
+                    log.warning("no camera_info: %s", error)
+                    camera_known = False
             if calibration is not None:
                 writer.write_camera_info("/camera_info", stamp_ns, camera_frame, calibration)
             if result is None:
@@ -226,7 +231,7 @@ def replay_bag(
     if calibration is not None:
         outputs["calibration.yaml"] = out_dir / "calibration.yaml"
         calibration.save(outputs["calibration.yaml"])
-    else:
+    elif estimator.model.camera is None:
         log.warning("model %s has no learnt camera: no camera_info or calibration.yaml", estimator.model_id)
 
     replay = ReplayResult(
