@@ -100,13 +100,15 @@ def run(args: argparse.Namespace) -> int:
         print(file=sys.stderr)
     # steady-state rate: frames after the first, so scene, texture and ray-table setup are excluded
     steady = (len(frame_times) - 1) / (frame_times[-1] - frame_times[0]) if len(frame_times) > 1 else float("nan")
+    median_ms = 1000 * float(np.median(np.diff(frame_times))) if len(frame_times) > 1 else float("nan")
     print(
         f"wrote {args.out} ({args.storage}): {args.frames} frames {calibration.width}x{calibration.height} "
         f"{calibration.distortion_model} fx={calibration.fx:.1f}, {int(sequence.labelled.sum())} labelled, "
         f"split {args.split}, seed {args.seed}"
     )
     print(
-        f"rendered {steady:.1f} frames/s (supersample {args.supersample}; setup {frame_times[0] - start:.2f} s), "
+        f"rendered {steady:.1f} frames/s, median {median_ms:.1f} ms/frame (supersample {args.supersample}; "
+        f"setup {frame_times[0] - start:.2f} s), "
         f"{args.frames / max(written - start, 1e-9):.1f} frames/s overall including setup and the bag"
     )
     return 0

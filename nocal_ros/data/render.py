@@ -67,26 +67,53 @@ class Renderer:
 
         rects = scene.rectangles
         self._corner = torch.tensor(np.stack([r.corner for r in rects]), dtype=torch.float64)
+        self._corners = torch.tensor(np.stack([[r.corner, r.corner + r.edge_u, r.corner + r.edge_v,
+                                                r.corner + r.edge_u + r.edge_v] for r in rects]), dtype=torch.float64)
         self._normal = torch.tensor(np.stack([r.normal for r in rects]), dtype=torch.float64)
         # edge / |edge|^2: a hit point's in-plane coordinate along the edge is (p - corner) . axis
         self._axis_u = torch.tensor(np.stack([r.edge_u / np.dot(r.edge_u, r.edge_u) for r in rects]), dtype=torch.float64)
         self._axis_v = torch.tensor(np.stack([r.edge_v / np.dot(r.edge_v, r.edge_v) for r in rects]), dtype=torch.float64)
-        self._texture = torch.tensor([r.texture for r in rects], dtype=torch.long)
-        # texture repeats per unit in-plane coordinate, and the world size of one texel (level 0)
         texture_size = scene.textures.shape[1]
-        self._repeats = torch.tensor([[np.linalg.norm(r.edge_u) / r.repeat, np.linalg.norm(r.edge_v) / r.repeat] for r in rects], dtype=torch.float32)
-        self._offset = torch.tensor([r.offset for r in rects], dtype=torch.float32)
-        self._texel = torch.tensor([r.repeat / texture_size for r in rects], dtype=torch.float32)
-        self._gain = torch.tensor(np.stack([r.gain for r in rects]), dtype=torch.float32)
-        if self._texture.min() < 0 or self._texture.max() >= len(scene.textures):
+        texture = np.array([r.texture for r in rects])
+        if texture.min() < 0 or texture.max() >= len(scene.textures):
             raise ValueError("a rectangle refers to a texture the scene does not have")
+        # One row of shading attributes per rectangle, gathered once per ray: texture repeats per unit
+        # in-plane coordinate (2), texture offset (2), world size of a level-0 texel (1), RGB gain (3),
+        # texture index (1).
+        self._attributes = torch.tensor(np.stack([
+            np.concatenate([[np.linalg.norm(r.edge_u) / r.repeat, np.linalg.norm(r.edge_v) / r.repeat], r.offset,
+                            [r.repeat / texture_size], r.gain, [r.texture]]) for r in rects]), dtype=torch.float32)
         self._texels, self._level_offsets, self._level_sizes = _mip_pyramid(scene.textures)
         self._levels = len(self._level_sizes)
+        self._frustum = self._frustum_planes(rays)
 
     @staticmethod
     def _ray_tensor(rays: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         valid = np.isfinite(rays).all(-1)
         return torch.from_numpy(np.where(valid[:, None], rays, 0.0).astype(np.float32)), torch.from_numpy(valid)
+
+    @staticmethod
+    def _frustum_planes(rays: np.ndarray) -> torch.Tensor:
+        """Camera-frame half-spaces ``n . p >= 0`` that contain every ray of the lens (``(M, 3)``).
+
+        Bounds the horizontal and vertical ray angles (``atan2(x, z)``, ``atan2(y, z)``); a side is
+        left out when the lens sees 180 degrees or more that way (fisheye). A rectangle with all four
+        corners outside one half-space cannot be hit, so it is culled before the per-pixel work.
+        """
+        rays = rays[np.isfinite(rays).all(-1)]
+        planes = []
+        margin = 1e-3
+        for axis in (0, 1):
+            angle = np.arctan2(rays[:, axis], rays[:, 2])
+            low, high = angle.min() - margin, angle.max() + margin
+            if high - low >= np.pi or low <= -np.pi / 2 or high >= np.pi / 2:
+                continue
+            for bound, sign in ((low, 1.0), (high, -1.0)):
+                # sign * (p_axis cos(bound) - p_z sin(bound)) >= 0 <=> angle on the inner side of bound
+                normal = np.zeros(3)
+                normal[axis], normal[2] = sign * np.cos(bound), -sign * np.sin(bound)
+                planes.append(normal)
+        return torch.tensor(np.array(planes).reshape(-1, 3), dtype=torch.float64)
 
     @staticmethod
     def _angular_footprint(calibration: CameraCalibration) -> torch.Tensor:
@@ -129,59 +156,73 @@ class Renderer:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"camera pose must be a finite 4x4 transform, got {T.shape}")
         origin = torch.from_numpy(T[:3, 3])
-        rotation = torch.from_numpy(T[:3, :3]).float()
+        rotation64 = torch.from_numpy(T[:3, :3])
+        rotation = rotation64.float()
         # Back-face culling: a one-sided rectangle is visible only from the side its normal faces.
-        facing = ((origin - self._corner) * self._normal).sum(1) > 1e-9
-        index = torch.nonzero(facing).squeeze(1)
+        visible = ((origin - self._corner) * self._normal).sum(1) > 1e-9
+        # Frustum culling: all corners outside one bounding half-space of the lens's rays.
+        if len(self._frustum):
+            corners_cam = (self._corners - origin) @ rotation64  # R^T (p - o), row-vector form
+            outside = (corners_cam @ self._frustum.T < 0).all(dim=1).any(dim=1)
+            visible &= ~outside
+        index = torch.nonzero(visible).squeeze(1)
+        count = len(index)
         to_corner = self._corner[index] - origin
         # Per-rectangle constants in float64 (they carry the large world coordinates), then float32.
         plane_distance = (to_corner * self._normal[index]).sum(1).float()  # negative: camera in front
-        start_u = (-(to_corner) * self._axis_u[index]).sum(1).float()
-        start_v = (-(to_corner) * self._axis_v[index]).sum(1).float()
+        # in-plane coordinates are shifted by -1/2 so that "inside" is |u| <= 1/2
+        start_u = ((-to_corner) * self._axis_u[index]).sum(1).float() - 0.5
+        start_v = ((-to_corner) * self._axis_v[index]).sum(1).float() - 0.5
         axes = torch.cat((self._normal[index], self._axis_u[index], self._axis_v[index])).float().T  # (3, 3R)
-        count = len(index)
 
         colours, distances = [], []
         for start in range(0, len(rays), _CHUNK_RAYS):
             directions = rays[start : start + _CHUNK_RAYS] @ rotation.T
-            projections = directions @ axes
-            along_normal, along_u, along_v = projections.split(count, dim=1)
-            t = plane_distance / along_normal  # > 0 only for rays towards the front face
-            u = torch.addcmul(start_u, t, along_u)
-            v = torch.addcmul(start_v, t, along_v)
-            hit = (t > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
-            t = torch.where(hit, t, torch.full_like(t, math.inf))
-            distance, nearest = t.min(dim=1)
-            distance = torch.where(valid_rays[start : start + _CHUNK_RAYS], distance, torch.full_like(distance, math.inf))
+            valid = valid_rays[start : start + _CHUNK_RAYS]
+            if count == 0:
+                distance = torch.full((len(directions),), math.inf)
+                nearest = torch.zeros(len(directions), dtype=torch.long)
+            else:
+                projections = directions @ axes
+                along_normal, along_u, along_v = projections.split(count, dim=1)
+                # Rays moving away from the front face get a tiny negative component, hence a huge
+                # positive t whose in-plane coordinates fall far outside: no separate t > 0 test.
+                t = plane_distance / along_normal.clamp_(max=-1e-12)
+                u = along_u.mul_(t).add_(start_u).abs_()
+                v = along_v.mul_(t).add_(start_v).abs_()
+                t.masked_fill_(torch.maximum(u, v, out=u) > 0.5, math.inf)
+                distance, nearest = t.min(dim=1)
+            distance = torch.where(valid, distance, torch.full_like(distance, math.inf))
             if footprint is not None:
-                pick = nearest.unsqueeze(1)
-                uv = torch.stack((u.gather(1, pick).squeeze(1), v.gather(1, pick).squeeze(1)), 1)
-                cosine = -along_normal.gather(1, pick).squeeze(1)
-                rect = index[nearest]
-                colours.append(self._shade(rect, uv, distance, cosine, footprint[start : start + _CHUNK_RAYS]))
+                rect = index[nearest] if count else nearest
+                colours.append(self._shade(rect, origin, directions, distance, footprint[start : start + _CHUNK_RAYS]))
             distances.append(distance)
         distance = torch.cat(distances)
         distance = torch.where(torch.isfinite(distance), distance, torch.full_like(distance, math.nan))
         return (torch.cat(colours) if footprint is not None else None), distance
 
-    def _shade(self, rect, uv, distance, cosine, footprint):
+    def _shade(self, rect, origin, directions, distance, footprint):
         """Trilinear, mip-mapped texture colour times the rectangle's fixed gain; black for misses."""
         hit = torch.isfinite(distance)
-        # misses carry inf/NaN coordinates; park them on a harmless texel before integer indexing
-        uv = torch.where(hit.unsqueeze(1), uv, torch.zeros_like(uv))
-        cosine = torch.where(hit, cosine, torch.ones_like(cosine))
+        # misses carry inf distances; park them on a harmless texel before integer indexing
         distance = torch.where(hit, distance, torch.ones_like(distance))
-        coords = uv * self._repeats[rect] + self._offset[rect]
+        # in-plane coordinates and incidence of the winning rectangle only (cheap: one per ray)
+        hit_point = directions.double() * distance.double().unsqueeze(1) + origin - self._corner[rect]
+        uv = torch.stack(((hit_point * self._axis_u[rect]).sum(1), (hit_point * self._axis_v[rect]).sum(1)), 1).float()
+        cosine = -(directions * self._normal[rect].float()).sum(1)
+        attributes = self._attributes[rect]
+        repeats, offset, texel, gain = attributes[:, 0:2], attributes[:, 2:4], attributes[:, 4], attributes[:, 5:8]
+        texture = attributes[:, 8].long()
+        coords = uv * repeats + offset
         # footprint on the surface, stretched by the grazing angle (geometric mean of the two axes)
         world = distance * footprint / cosine.clamp(min=0.05).sqrt()
-        level = torch.log2((world / self._texel[rect]).clamp(min=1e-6)).clamp(0, self._levels - 1)
+        level = torch.log2((world / texel).clamp(min=1e-6)).clamp(0, self._levels - 1)
         level = torch.nan_to_num(level, nan=0.0, posinf=self._levels - 1)
         low = level.floor().long().clamp(max=self._levels - 1)
         high = (low + 1).clamp(max=self._levels - 1)
         blend = (level - low).unsqueeze(1)
-        texture = self._texture[rect]
         colour = (1 - blend) * self._bilinear(texture, coords, low) + blend * self._bilinear(texture, coords, high)
-        colour = colour * self._gain[rect]
+        colour = colour * gain
         return torch.where(hit.unsqueeze(1), colour, torch.zeros_like(colour))
 
     def _bilinear(self, texture, coords, level):
@@ -191,9 +232,10 @@ class Renderer:
         xy = frac * size.unsqueeze(1) - 0.5
         x0y0 = xy.floor()
         w = xy - x0y0
-        x0 = x0y0[:, 0].long() % size
-        y0 = x0y0[:, 1].long() % size
-        x1, y1 = (x0 + 1) % size, (y0 + 1) % size
+        mask = size - 1  # power-of-two sizes: wrap-around by bit mask (also maps -1 to size - 1)
+        x0 = x0y0[:, 0].long() & mask
+        y0 = x0y0[:, 1].long() & mask
+        x1, y1 = (x0 + 1) & mask, (y0 + 1) & mask
         texels = self._texels
 
         def fetch(x, y):
