@@ -64,7 +64,8 @@ DEFAULT_TRAINING_CONFIG: dict[str, Any] = {
         "intrinsics": PAPER_EQUIVALENT_INTRINSICS_LR,
     },
     "loss_weights": dict(PAPER_WEIGHTS),
-    "camera_from_labelled_only": True,  # camera parameters step on labelled batches only (see loop)
+    "camera_from_labelled_only": True,
+    "square_pixels_until_full": True,  # the focal stage learns one focal (fx, fy move together)  # camera parameters step on labelled batches only (see loop)
     "grad_clip": None,  # max global grad norm of the network groups, or None
     "mixed_precision": True,  # bf16 autocast on CUDA only; CPU always runs float32
     "log_every": 50,
@@ -279,6 +280,15 @@ def optimisation_step(
             parameter.grad = None
     elif world is not None:
         world.average_gradients(camera_parameters)
+    if cfg["square_pixels_until_full"] and cameras and cameras[0].stage == "focal":
+        # One focal length until the full stage: the mean focal is well constrained by known poses
+        # long before the aspect ratio is (measured: fx and fy drift apart in opposite directions).
+        # Equal gradients and equal starting values keep Adam's updates of fx and fy equal.
+        for camera in cameras:
+            if camera.log_fx_rel.grad is not None and camera.log_fy_rel.grad is not None:
+                mean = (camera.log_fx_rel.grad + camera.log_fy_rel.grad) / 2
+                camera.log_fx_rel.grad = mean.clone()
+                camera.log_fy_rel.grad = mean.clone()
     if cfg["grad_clip"]:
         nn.utils.clip_grad_norm_([p for o in optimisers.values() for g in o.param_groups for p in g["params"]
                                   if p.grad is not None], cfg["grad_clip"])
