@@ -42,8 +42,8 @@ def render_sequence(
         calibration: the true camera; images are rendered at its size.
         speed, angular_speed: RMS camera speed in m/s and deg/s (see ``trajectory.py``).
         supersample: ``k x k`` rays per pixel.
-        labelled_fraction: share of frames that get an arm pose (chosen at random, at least one
-            when the fraction is positive).
+        labelled_fraction: share of frames that get an arm pose, in contiguous runs (see
+            :func:`labelled_frames`).
         return_depth: put per-frame depth ``(N, H, W)`` float32 (camera z, metres) in ``extras["depth"]``.
         progress: called as ``progress(done, total)`` after each frame.
 
@@ -77,10 +77,7 @@ def render_sequence(
         if progress is not None:
             progress(i + 1, num_frames)
 
-    labelled_count = int(round(labelled_fraction * num_frames))
-    if labelled_fraction > 0:
-        labelled_count = max(labelled_count, 1)
-    labelled = np.random.default_rng(label_seed).choice(num_frames, size=labelled_count, replace=False)
+    labelled = labelled_frames(num_frames, labelled_fraction, np.random.default_rng(label_seed))
     arm_poses = np.full((num_frames, 4, 4), np.nan)
     arm_poses[labelled] = poses[labelled]
 
@@ -89,6 +86,27 @@ def render_sequence(
         extras["depth"] = depths
     return FrameSequence(images, stamps_ns, arm_poses, ground_truth=poses, calibration=calibration,
                          name=f"synthetic:{split}:seed={seed}", extras=extras)
+
+
+def labelled_frames(num_frames: int, fraction: float, rng: np.random.Generator, run_length: int = 9) -> np.ndarray:
+    """Indices of the frames that get an arm pose: ``fraction`` of them, in runs of ``run_length``.
+
+    A pair is labelled only when both of its frames have poses, so isolated labelled frames would
+    give almost no labelled pairs (10% of frames at random -> about 1% of pairs). An arm recording
+    logs poses over stretches of motion, so runs are both the realistic and the useful layout; the
+    default run covers the trainer's largest frame gap (8) plus one.
+    """
+    count = int(round(fraction * num_frames))
+    if fraction > 0:
+        count = max(count, 1)
+    if count >= num_frames:
+        return np.arange(num_frames)
+    chosen = np.zeros(num_frames, dtype=bool)
+    while chosen.sum() < count:
+        length = min(run_length, count - int(chosen.sum()))
+        start = int(rng.integers(0, num_frames - length + 1))
+        chosen[start:start + length] = True
+    return np.flatnonzero(chosen)
 
 
 # Ranges random_calibration draws from (uniform unless said otherwise), as fractions of the width
