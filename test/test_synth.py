@@ -113,3 +113,15 @@ def test_bad_inputs_fail_clearly_and_write_nothing(tmp_path, capsys):
     assert "already exists" in capsys.readouterr().err and (existing / "keep.txt").read_text() == "precious"
     with pytest.raises(SystemExit):
         main(["synth", "--out", str(out), "--size", "80by60"])
+
+
+def test_random_camera_is_drawn_from_the_seed(tmp_path):
+    from nocal_ros.data.synthetic import random_calibration
+
+    out = tmp_path / "random"
+    assert main(["synth", "--out", str(out), "--random-camera", "--size", "48x36", "--frames", "2", "--seed", "9",
+                 "--threads", "1"]) == 0
+    info = read_bag(out)["/ground_truth/camera_info"][0][2]
+    expected = random_calibration(np.random.default_rng([9, 7]), 48, 36)
+    assert np.allclose(np.asarray(info.k).reshape(3, 3), expected.K) and np.allclose(info.d, expected.D)
+    assert not np.allclose(expected.K, DEFAULT_CAMERA.scaled(48, 36).K)

@@ -56,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--angular-speed", type=float, default=20.0, help="RMS angular speed in deg/s (default 20)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads for rendering (default: torch's choice; 1 suits busy shared machines)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,6 +72,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--fps must be > 0, --supersample >= 1 and --labelled-fraction in [0, 1]")
     if args.speed < 0 or args.angular_speed < 0:
         raise ConfigError("--speed and --angular-speed must be non-negative")
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+        import torch
+
+        torch.set_num_threads(args.threads)
 
     if args.random_camera:
         if args.camera is not None:
