@@ -116,14 +116,14 @@ class ReplayResult:
 
 
 def _image_count(bag: Path, topic: str) -> int | None:
-    try:
-        from nocal_ros.data.bags import _open_bag
+    """The bag index's message count on ``topic``: only a progress bar total, so never an error."""
+    from nocal_ros.data.bags import bag_topics
 
-        with _open_bag(Path(bag)) as reader:
-            info = reader.topics.get(topic)
-            return None if info is None else int(info.msgcount)
-    except Exception:  # noqa: BLE001 - only a progress bar total
+    try:
+        info = bag_topics(bag).get(topic)
+    except NocalError:
         return None
+    return None if info is None else info[1]
 
 
 def _check_outputs(out_dir: Path, overwrite: bool) -> None:
@@ -261,12 +261,11 @@ class GroundTruth:
 
 def _ground_truth(bag: Path, gt_topic: str | None, camera_info_topic: str | None, stamps_ns: np.ndarray) -> GroundTruth | None:
     """True camera poses at the estimate's stamps and the true calibration, when the bag has them."""
-    from nocal_ros.data.bags import _open_bag, read_poses, read_sequence
+    from nocal_ros.data.bags import bag_topics, read_camera_info, read_poses
 
     if not gt_topic or len(stamps_ns) < 2:
         return None
-    with _open_bag(bag) as reader:
-        topics = set(reader.topics)
+    topics = bag_topics(bag)
     if gt_topic not in topics:
         return None
     T_w_cam = read_poses(bag, gt_topic, stamps_ns)
@@ -275,9 +274,10 @@ def _ground_truth(bag: Path, gt_topic: str | None, camera_info_topic: str | None
         return None
     calibration = None
     if camera_info_topic and camera_info_topic in topics:
-        calibration = read_sequence(
-            bag, pose_source="none", gt_topic=None, camera_info_topic=camera_info_topic, max_frames=1
-        ).calibration
+        try:
+            calibration = read_camera_info(bag, camera_info_topic)
+        except BagError as error:  # e.g. an all-zero K: the pose errors are still worth reporting
+            log.warning("no camera errors in the report: %s", error)
     return GroundTruth(stamps_ns[valid], T_w_cam[valid], calibration)
 
 

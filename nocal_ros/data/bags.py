@@ -742,6 +742,32 @@ def read_poses(
     return poses
 
 
+def read_camera_info(path: str | Path, topic: str = CAMERA_INFO_TOPIC):
+    """The first ``sensor_msgs/CameraInfo`` on ``topic`` as a :class:`nocal_ros.lens.CameraCalibration`.
+
+    Reads that one topic only, so a long bag's images are neither read nor decoded.
+
+    Raises:
+        BagError: the topic is missing, holds another type, is empty, or its message is not a
+            usable calibration (e.g. the all-zero K of an uncalibrated driver); the message names the bag.
+    """
+    path = _check_path(path)
+    with _open_bag(path) as reader:
+        info = reader.topics.get(topic)
+        if info is None:
+            raise BagError(f"{path}: no camera info topic {topic!r}; topics in the bag: {_topic_list(reader)}")
+        if info.msgtype != CAMERA_INFO_TYPE:
+            raise BagError(f"{path}: topic {topic} holds {info.msgtype}, not {CAMERA_INFO_TYPE}")
+        connections = [c for c in reader.connections if c.topic == topic]
+        for connection, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            try:
+                return camera_info_to_calibration(msg)
+            except BagError as error:
+                raise BagError(f"{path}: {topic}: {error}") from None
+    raise BagError(f"{path}: topic {topic} has no messages")
+
+
 def iter_images(
     path: str | Path, image_topic: str = IMAGE_TOPIC, resize: Sequence[int] | None = None
 ) -> Iterator[tuple[int, str, np.ndarray]]:
