@@ -22,6 +22,7 @@ import math
 import multiprocessing as mp
 import os
 import queue as queue_module
+import signal
 import time
 import traceback
 from collections.abc import Callable
@@ -396,6 +397,9 @@ def _device(name: str) -> str:
 
 def _worker_main(config_values: dict, messages: Any, cancel: Any, log_level: int) -> None:
     """Entry point of the worker process: run the job, report everything through ``messages``."""
+    # A terminal's Ctrl-C reaches the whole process group. The owner (CLI or node) answers it by
+    # cancelling, so the worker stops between steps rather than dying mid-step of its own KeyboardInterrupt.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=log_level, format="[%(levelname)s] finetune worker: %(message)s")
     try:
         config = FinetuneConfig.from_dict(config_values)
