@@ -1,6 +1,8 @@
 """Launch the trainer node with config/trainer.yaml (override with params_file:=...).
 
     ros2 launch nocal_ros trainer.launch.py output_store:=/data/models
+
+Without ROS, ``nocal train --init MODEL --bag BAG --out STORE`` runs the same fine-tuning job.
 """
 
 import os

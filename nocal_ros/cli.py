@@ -18,8 +18,7 @@ from nocal_ros.errors import NocalError
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("nocal_ros.commands.demo", "render a short bag from an unseen camera and run odometry on it"),
     "synth": ("nocal_ros.commands.synth", "render a synthetic rosbag2 dataset with ground truth"),
-    "train": ("nocal_ros.commands.train", "train or fine-tune a NOCaL model"),
-    "finetune": ("nocal_ros.commands.finetune", "field re-calibration: fine-tune on bags into a model store (worker process, atomic latest)"),
+    "train": ("nocal_ros.commands.train", "pretrain a NOCaL model, or fine-tune one on bags into a model store (--init)"),
     "eval": ("nocal_ros.commands.eval", "evaluate a model's calibration and odometry against a bag's ground truth"),
     "odometry": ("nocal_ros.commands.odometry", "replay a bag offline: odometry bag, trajectory, calibration, report"),
     "bench": ("nocal_ros.commands.bench", "measure pose-head and estimator latency"),

@@ -1,9 +1,15 @@
-"""``nocal train``: pretrain or fine-tune NOCaL from a YAML config, on bags or rendered sequences.
+"""``nocal train``: pretrain NOCaL from a YAML config, or fine-tune a model on bags (``--init``).
 
-Runs as one process, or under ``torchrun --nproc_per_node N`` with DistributedDataParallel (gloo on
-CPU, nccl on GPU). Writes ``metrics.csv``, a resumable ``last.safetensors`` and the final
-``model.safetensors`` (each with its JSON sidecar) into ``--out``. Ctrl-C stops at the next step and
-leaves a resumable checkpoint (``--resume`` continues it exactly).
+Pretraining (no ``--init``) trains on bags or on the config's rendered ``synthetic`` section, as one
+process or under ``torchrun --nproc_per_node N`` with DistributedDataParallel (gloo on CPU, nccl on
+GPU). It writes ``metrics.csv``, a resumable ``last.safetensors`` and the final ``model.safetensors``
+(each with its JSON sidecar) into ``--out``. Ctrl-C stops at the next step and leaves a resumable
+checkpoint (``--resume`` continues it exactly).
+
+Fine-tuning (``--init MODEL --bag BAG ...``) is field re-calibration: exactly the job the trainer node
+runs (``nocal_ros.finetune.FinetuneJob``, in a worker process). ``--out`` is then a model store: the
+result becomes its next version and ``latest`` moves to it only once that version is complete.
+Ctrl-C cancels and keeps the previous model.
 """
 
 from __future__ import annotations
@@ -32,19 +38,37 @@ SYNTHETIC_DEFAULTS = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, type=Path, help="training YAML (see config/*.yaml)")
+    parser.add_argument("--config", type=Path,
+                        help="training YAML (see config/*.yaml); required to pretrain; with --init the fine-tuning "
+                             "recipe, e.g. config/finetune.yaml (default: training defaults, curriculum scaled to --steps)")
     parser.add_argument("--bag", action="append", type=Path, default=[],
-                        help="training bag (repeat for several cameras); without it the config's synthetic section is rendered")
-    parser.add_argument("--init", help="pretrained model to fine-tune from (file, version or store directory)")
-    parser.add_argument("--out", type=Path, help="output directory (default: runs/<config name>)")
-    parser.add_argument("--resume", action="store_true", help="continue exactly from OUT/last.safetensors")
+                        help="training bag (repeat for several); without it pretraining renders the config's synthetic section")
+    parser.add_argument("--init", metavar="MODEL", nargs="?", const="",
+                        help="fine-tune MODEL (file, version or store directory; --init alone: the store's latest, "
+                             "else the shipped model) on --bag into the model store --out, as the trainer node does")
+    parser.add_argument("--out", type=Path,
+                        help="output directory (default: runs/<config name>); with --init the model store to publish to")
+    parser.add_argument("--resume", action="store_true", help="continue pretraining exactly from OUT/last.safetensors")
     parser.add_argument("--steps", type=int, help="override the config's number of steps")
+    parser.add_argument("--seed", type=int, help="override the config's seed")
     parser.add_argument("--bench", type=int, metavar="N",
                         help="time N optimisation steps (after 5 warm-up steps) and print the figures; trains nothing")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ...")
-    parser.add_argument("--image-topic", default="/camera/image_raw")
-    parser.add_argument("--pose-topic", default="/arm/pose")
+    bags = parser.add_argument_group("bags")
+    bags.add_argument("--image-topic", default="/camera/image_raw")
+    bags.add_argument("--pose-topic", default="/arm/pose", help="arm poses (PoseStamped) for --pose-source pose")
+    bags.add_argument("--pose-source", default="auto", choices=("auto", "pose", "tf", "none"),
+                      help="auto: the pose topic if present, else TF, else none (unlabelled: scale not metric)")
+    bags.add_argument("--tf-parent", default="base", help="TF edge parent -> child for --pose-source tf")
+    bags.add_argument("--tf-child", default="tool")
+    bags.add_argument("--hand-eye", type=float, nargs=16, metavar="T", help="T_tool_cam, row-major 4x4 (default identity)")
+    bags.add_argument("--tolerance", type=float, default=0.02, help="seconds between an image and its arm pose")
+    bags.add_argument("--max-frames", type=int, help="read at most this many frames per bag")
+    finetune = parser.add_argument_group("fine-tuning (--init)")
+    finetune.add_argument("--camera-start", default="reset", choices=("reset", "init"),
+                          help="reset: f = width, centred principal point (a new camera); init: the model's camera of the same size")
+    finetune.add_argument("--keep", type=int, default=5, help="versions kept in the store (0: all)")
 
 
 def load_config(path: Path) -> dict[str, Any]:
@@ -94,17 +118,24 @@ def _init_distributed(device: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.init is not None:
+        return run_finetune_job(args)
     import torch
     from tqdm import tqdm
 
     from nocal_ros.training import train, training_config
 
+    if args.config is None:
+        raise ConfigError("pretraining needs --config (a training YAML, e.g. config/pretrain.yaml); "
+                          "to fine-tune a model on bags, pass --init MODEL --bag BAG --out STORE")
     if args.threads:
         torch.set_num_threads(args.threads)
     source = str(args.config)
     raw = load_config(args.config)
     if args.steps is not None:
         raw["steps"] = args.steps
+    if args.seed is not None:
+        raw["seed"] = args.seed
     config = training_config(raw, source=source)
     out_dir = args.out or Path("runs") / args.config.stem
     distributed = _init_distributed(args.device)
@@ -113,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         if args.bag:
             from nocal_ros.data.bags import read_sequence
 
-            sequences = [read_sequence(bag, image_topic=args.image_topic, pose_topic=args.pose_topic) for bag in args.bag]
+            sequences = [read_sequence(bag, **bag_options(args)) for bag in args.bag]
         else:
             sequences = synthetic_sequences(config["synthetic"], source)
         if args.bench:
@@ -159,6 +190,134 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if distributed:
             torch.distributed.destroy_process_group()
+
+
+def bag_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``read_sequence`` keyword arguments from the command line's bag options."""
+    import numpy as np
+
+    return dict(
+        image_topic=args.image_topic, pose_topic=args.pose_topic, pose_source=args.pose_source,
+        tf_parent=args.tf_parent, tf_child=args.tf_child, tolerance_s=args.tolerance, max_frames=args.max_frames,
+        T_tool_cam=None if args.hand_eye is None else np.asarray(args.hand_eye, dtype=np.float64).reshape(4, 4),
+    )
+
+
+def finetune_config(args: argparse.Namespace):
+    """The trainer node's ``FinetuneConfig`` from ``nocal train --init`` arguments.
+
+    ``--steps`` and ``--seed`` default to the recipe's (``--config``), as in pretraining; the job
+    itself lets them win over the recipe and rescales its curriculum to them.
+    """
+    from nocal_ros.finetune import FinetuneConfig
+    from nocal_ros.model_store import resolve_model_path
+
+    if args.resume:
+        raise ConfigError("--resume continues pretraining; a fine-tuning run (--init) is not resumable: "
+                          "a cancelled run kept the previous model, so start it again")
+    if args.bench:
+        raise ConfigError("--bench times pretraining steps; leave out --init")
+    if not args.bag:
+        raise ConfigError("fine-tuning (--init) needs at least one --bag")
+    if args.out is None:
+        raise ConfigError("fine-tuning (--init) publishes into a model store: pass --out STORE "
+                          "(the odometry node's model_path, e.g. ~/.ros/nocal_ros/models)")
+    if args.init:
+        resolve_model_path(args.init)  # a wrong path fails here, before a worker process starts
+    recipe = load_config(args.config) if args.config else {}
+    values: dict[str, Any] = dict(
+        bags=[str(bag) for bag in args.bag], output=str(args.out), init=args.init,
+        training_config=str(args.config or ""), image_topic=args.image_topic, pose_topic=args.pose_topic,
+        pose_source=args.pose_source, tf_parent=args.tf_parent, tf_child=args.tf_child, tolerance_s=args.tolerance,
+        max_frames=args.max_frames, threads=args.threads or 0, keep_versions=args.keep,
+        camera_start=args.camera_start, device=args.device,
+    )
+    for key in ("steps", "seed"):
+        value = getattr(args, key) if getattr(args, key) is not None else recipe.get(key)
+        if value is not None:
+            values[key] = int(value)
+    if args.hand_eye is not None:
+        values["T_tool_cam"] = list(args.hand_eye)
+    return FinetuneConfig(**values)
+
+
+def run_finetune_job(args: argparse.Namespace) -> int:
+    """Fine-tune in a worker process and publish to the store ``--out``; Ctrl-C cancels the job."""
+    import time
+
+    from nocal_ros.errors import NocalError
+    from nocal_ros.finetune import FinetuneJob
+
+    config = finetune_config(args)
+    job = FinetuneJob(config)
+    # A terminal's Ctrl-C goes to the whole process group; only this process should react, by cancelling.
+    # The worker ignores SIGINT itself once running; inheriting "ignore" covers its start-up as well.
+    previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        job.start()
+    finally:
+        signal.signal(signal.SIGINT, previous_handler)
+    display = _JobProgress(int(config.steps))
+    started = time.monotonic()
+    try:
+        try:
+            job.wait(interval=0.2, on_message=display)
+        except KeyboardInterrupt:
+            display.write("cancelling; the previous model stays in place")
+            job.cancel()
+            job.wait(timeout=30, interval=0.2, on_message=display)
+    finally:
+        job.close()
+        display.close()
+    if job.state == "succeeded":
+        result = job.result
+        final = display.last_training
+        camera = " ".join(f"{k} {final[k]:.2f}" for k in ("fx", "fy", "cx", "cy") if isinstance(final.get(k), float))
+        print(f"published {result['version']} of {config.output} (latest): {result['model_path']}  "
+              f"({result['steps']} steps in {time.monotonic() - started:.1f} s{', camera 0: ' + camera if camera else ''})",
+              flush=True)
+        for warning in result.get("warnings") or []:
+            print(f"warning: {warning}", flush=True)
+        return 0
+    if job.state == "cancelled":
+        print(f"cancelled: {job.error}", flush=True)
+        return 130
+    # The worker's error already names the file and the problem; the CLI prints it as one line.
+    raise NocalError(job.error or "fine-tuning failed; previous model kept")
+
+
+class _JobProgress:
+    """The worker's progress records as a step bar, one line per stage, and logged warnings."""
+
+    def __init__(self, total_steps: int) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total_steps, unit="step", dynamic_ncols=True)
+        self.stage: str | None = None
+        self.last_training: dict = {}  # the latest record with a loss and the camera's intrinsics
+
+    def __call__(self, message: dict) -> None:
+        if message.get("type") != "progress":
+            return
+        stage = message.get("stage")
+        if stage == "warning":
+            log.warning(message.get("message", ""))
+            return
+        if message.get("loss") is not None:
+            self.last_training = message
+            self.bar.n = int(message.get("step") or 0)
+            camera = " ".join(f"{k} {message[k]:.1f}" for k in ("fx", "fy", "cx", "cy") if isinstance(message.get(k), float))
+            self.bar.set_postfix_str(f"{stage} loss {message['loss']:.4f} {camera}")
+        elif stage != self.stage and stage not in ("done", "cancelled"):  # the final line says those
+            detail = f" {message['init']}" if message.get("init") else ""
+            self.write(f"{str(stage).replace('_', ' ')}{detail}")
+        self.stage = stage
+
+    def write(self, line: str) -> None:
+        self.bar.write(line)
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def _tensorboard(out_dir: Path):
