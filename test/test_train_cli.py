@@ -134,18 +134,23 @@ def test_bad_fine_tuning_commands_fail_in_one_line(tmp_path, field, capsys):
         main(["finetune", "--bag", field["bag"], "--store", store])
 
 
-def live_processes_in_group(group: int) -> list[int]:
-    """Running (not zombie) processes of a process group, from /proc (a container's PID 1 may never
-    reap the zombies of orphans)."""
-    live = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == group and fields[0] != "Z":  # fields after the name: state, ppid, pgrp
-            live.append(int(stat.parent.name))
-    return live
+def live_processes_in_group(group: int, wait_s: float = 10.0) -> list[str]:
+    """Command lines of the running (not zombie) processes of a process group, from /proc (a container's
+    PID 1 may never reap orphans' zombies), after giving them ``wait_s`` to exit: multiprocessing's
+    resource tracker only notices its parent is gone a moment later."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        live = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()  # after the name: state, ppid, pgrp
+                if int(fields[2]) == group and fields[0] != "Z":
+                    live.append((stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode())
+            except OSError:  # exited meanwhile
+                continue
+        if not live or time.monotonic() > deadline:
+            return live
+        time.sleep(0.1)
 
 
 def test_ctrl_c_cancels_the_job_and_keeps_the_previous_model(tmp_path, field):
