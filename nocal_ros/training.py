@@ -73,6 +73,10 @@ DEFAULT_TRAINING_CONFIG: dict[str, Any] = {
     "model": {},  # overrides of nocal_ros.model.DEFAULT_MODEL_CONFIG
     "synthetic": None,  # used by `nocal train` without --bag (see commands/train.py)
     "camera_init": None,  # {"focal_ratio": r}: initial f = r * true f (experiments and tests only)
+    # Block-coordinate schedule once the camera learns (focal and full stages): {"network": N, "camera": M}
+    # repeats N steps that train only the networks, then M steps that train only the camera (network
+    # frozen). None trains both on every step (the paper). See camera_phase().
+    "alternate": None,
 }
 
 OPTIMISER_GROUPS = ("encoder", "hypernetwork", "distortion", "intrinsics")
@@ -117,9 +121,33 @@ def _validate(config: dict[str, Any], source: str) -> None:
     for name, value in config["curriculum"].items():
         if not isinstance(value, int) or value < 0:
             raise ConfigError(f"{source}: curriculum.{name} must be a non-negative integer, got {value!r}")
+    alternate = config["alternate"]
+    if alternate is not None and not (
+        isinstance(alternate, dict) and set(alternate) == {"network", "camera"}
+        and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in alternate.values())
+    ):
+        raise ConfigError(f"{source}: alternate must be null or {{network: N, camera: M}} with positive integers, got {alternate!r}")
     for name, value in {**config["learning_rates"], **config["loss_weights"]}.items():
         if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             raise ConfigError(f"{source}: {name} must be a finite non-negative number, got {value!r}")
+
+
+def camera_phase(step: int, curriculum: dict[str, int], alternate: dict[str, int] | None) -> str:
+    """Which parameters step at ``step``: ``"both"``, ``"network"`` or ``"camera"``.
+
+    Why alternate (measured on a 640x480 camera, true f 600, start 640; docs/RESULTS.md, Table I):
+    under simultaneous training the focal gradient's sign flips from step to step, because the
+    network keeps re-fitting its rendering to the current rays, and the focal stays near its start
+    (632-647 px after 1300-1500 steps). On a frozen network the gradient is consistent (24 of 24
+    labelled batches agreed) and a camera phase moves the focal to that network's optimum within
+    about 15 camera steps; each network phase then re-fits the network to the new camera. The frozen
+    network's optimum is only as good as the network: trained from scratch it lay towards the truth
+    (640 -> 616 -> 608 px), from an early pretrained model it lay away from it (640 -> 687 px).
+    """
+    if not alternate or step < curriculum["fixed"]:
+        return "both"
+    position = (step - curriculum["fixed"]) % (alternate["network"] + alternate["camera"])
+    return "network" if position < alternate["network"] else "camera"
 
 
 def curriculum_stage(step: int, curriculum: dict[str, int]) -> str:
@@ -261,9 +289,19 @@ def optimisation_step(
     pixel_index: torch.Tensor,
     cfg: dict[str, Any],
     world: "_DistributedContext | None" = None,
-) -> LossTerms:
-    """One step of every optimiser on one batch. A non-finite loss changes nothing and is returned."""
+    phase: str = "both",
+) -> LossTerms | None:
+    """One step of every optimiser on one batch. A non-finite loss changes nothing and is returned.
+
+    ``phase`` (see :func:`camera_phase`): ``"network"`` steps only the encoder and hypernetwork,
+    ``"camera"`` only the camera's intrinsics and distortion, ``"both"`` all four. Returns None when
+    nothing would step (an unlabelled batch in a camera phase with ``camera_from_labelled_only``).
+    """
     device = batch["image_i"].device
+    camera_skipped = cfg["camera_from_labelled_only"] and not bool(batch["labelled"].any())
+    if phase == "camera" and camera_skipped:
+        # Nothing would step: skip the forward pass (the sampler has already drawn the batch).
+        return None
     with _autocast(device, cfg["mixed_precision"]):
         terms, _ = pair_loss(network, cameras, batch, pixel_index, cfg["loss_weights"])
     if not torch.isfinite(terms.total):
@@ -272,7 +310,7 @@ def optimisation_step(
         optimiser.zero_grad(set_to_none=True)
     terms.total.backward()
     camera_parameters = [p for camera in cameras for p in camera.parameters()]
-    if cfg["camera_from_labelled_only"] and not bool(batch["labelled"].any()):
+    if camera_skipped or phase == "network":
         # A predicted pose can absorb a focal error (image shift ~ f * angle), so an unlabelled
         # pair's focal gradient follows the encoder's bias; only known poses anchor the camera.
         # (Every rank draws a labelled batch at the same step, so all ranks skip together.)
@@ -292,7 +330,9 @@ def optimisation_step(
     if cfg["grad_clip"]:
         nn.utils.clip_grad_norm_([p for o in optimisers.values() for g in o.param_groups for p in g["params"]
                                   if p.grad is not None], cfg["grad_clip"])
-    for optimiser in optimisers.values():
+    for name, optimiser in optimisers.items():
+        if phase == "camera" and name in ("encoder", "hypernetwork"):
+            continue
         optimiser.step()
     return terms
 
@@ -508,16 +548,18 @@ def train(
 
             batch = sampler.next_batch(device)
             pixel_index = torch.randperm(width * height, generator=pixel_generator)[: cfg["rays_per_image"]].to(device)
-            terms = optimisation_step(network, cameras, optimisers, batch, pixel_index, cfg, world)
-            if not torch.isfinite(terms.total):
+            phase = camera_phase(step, cfg["curriculum"], cfg["alternate"])
+            terms = optimisation_step(network, cameras, optimisers, batch, pixel_index, cfg, world, phase)
+            if terms is not None and not torch.isfinite(terms.total):
                 raise NocalError(
                     f"training diverged at step {step}: loss is {float(terms.total.detach())}"
                     + (f"; the last good checkpoint is {out_dir / 'last.safetensors'}" if out_dir else "")
                 )
             step += 1
 
-            window.append(terms.as_floats())
-            if step % cfg["log_every"] == 0 or step == cfg["steps"]:
+            if terms is not None:
+                window.append(terms.as_floats())
+            if window and (step % cfg["log_every"] == 0 or step == cfg["steps"]):
                 means = {k: world.average(sum(w[k] for w in window) / len(window)) for k in window[0]}
                 window = []
                 fx, fy, cx, cy = (float(v.detach()) for v in cameras[0].intrinsics())
