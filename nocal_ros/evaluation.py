@@ -186,8 +186,17 @@ def _statistics(errors: np.ndarray) -> dict[str, float]:
 
 
 def integrate_relative_poses(relative: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
-    """Chain relative poses ``T_ci_ci+1`` ``(M, 4, 4)`` into a trajectory ``T_w_ci`` ``(M + 1, 4, 4)``."""
+    """Chain relative poses ``T_ci_ci+1`` ``(M, 4, 4)`` into a trajectory ``T_w_ci`` ``(M + 1, 4, 4)``.
+
+    Each relative rotation is first replaced by its nearest rotation matrix (SVD): the pose head's
+    float32 rotations are orthonormal to ~1e-7 only, and chaining ~100 of them exceeded evo's 1e-6 SO(3)
+    tolerance, so RPE/APE raised "not a valid SO(3) group element" on a 200-frame bag.
+    """
     relative = _check_poses(relative, "relative poses")
+    u, _, vt = np.linalg.svd(relative[:, :3, :3])
+    flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)  # nearest proper rotation (det +1), not a reflection
+    u[:, :, -1] *= flip[:, None]
+    relative[:, :3, :3] = u @ vt
     trajectory = np.empty((len(relative) + 1, 4, 4))
     trajectory[0] = np.eye(4) if start is None else start
     for i, T in enumerate(relative):

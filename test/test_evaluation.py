@@ -106,6 +106,23 @@ def test_relative_pose_error_matches_numpy_and_leaves_inputs_alone():
     np.testing.assert_allclose(pairs["translation_m_per_pair"], translation, atol=1e-9)
 
 
+def test_rpe_of_float32_pose_head_outputs_over_a_long_sequence():
+    # The pose head's rotations are float32 (orthonormal to ~1e-7); chained over 400 pairs their drift
+    # used to exceed evo's 1e-6 SO(3) tolerance and RPE raised instead of reporting.
+    truth = random_trajectory(401, seed=3)
+    relative = np.stack([g.relative_transform(truth[i], truth[i + 1]) for i in range(400)])
+    predicted = relative.copy()
+    # As the pose head makes them: an unnormalised float32 6D vector through Gram-Schmidt.
+    rot6d = g.matrix_to_rotation_6d(torch.from_numpy(relative[:, :3, :3]).float()) * 1.7
+    predicted[:, :3, :3] = g.rotation_6d_to_matrix(rot6d).double().numpy()
+    rotations = predicted[:, :3, :3]
+    assert np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max() > 1e-8
+    rpe = ev.relative_pose_error_of_pairs(predicted, truth)
+    assert rpe["translation_m"]["max"] < 1e-5 and rpe["rotation_deg"]["max"] < 1e-3
+    chained = ev.integrate_relative_poses(predicted, start=truth[0])[:, :3, :3]
+    assert np.abs(np.einsum("nji,njk->nik", chained, chained) - np.eye(3)).max() < 1e-12
+
+
 def test_relative_pose_error_with_scale_correction_forgives_a_monocular_scale():
     truth = random_trajectory(20, seed=2)
     half_scale = truth.copy()
