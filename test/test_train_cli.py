@@ -160,25 +160,28 @@ def test_ctrl_c_cancels_the_job_and_keeps_the_previous_model(tmp_path, field):
     store.publish_file(Path(field["init"]), {"kind": "shipped"})
     env = dict(os.environ, OMP_NUM_THREADS="1")
     # A session of its own, so the test can send SIGINT to the whole process group as a terminal does.
-    process = subprocess.Popen(
-        [sys.executable, "-m", "nocal_ros.cli", "train", "--init", "--bag", field["bag"], "--out", str(store.root),
-         "--config", field["recipe"], "--steps", "100000", "--threads", "1", "--device", "cpu"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    # Output goes to files, not pipes: a progress bar filling an unread pipe would block the CLI.
+    with open(tmp_path / "stdout.txt", "w") as out, open(tmp_path / "stderr.txt", "w") as err:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "nocal_ros.cli", "train", "--init", "--bag", field["bag"], "--out", str(store.root),
+             "--config", field["recipe"], "--steps", "100000", "--threads", "1", "--device", "cpu"],
+            stdout=out, stderr=err, text=True, env=env, start_new_session=True)
     try:
         deadline = time.monotonic() + 180
         while True:  # training is under way once its staging directory logs a few steps
             logged = [p for p in store.root.glob(".staging-*/metrics.csv") if len(p.read_text().splitlines()) >= 3]
             if logged:
                 break
-            assert process.poll() is None, process.communicate()
+            assert process.poll() is None, (tmp_path / "stderr.txt").read_text()[-2000:]
             assert time.monotonic() < deadline, "training never started"
             time.sleep(0.2)
         os.killpg(process.pid, signal.SIGINT)
-        stdout, stderr = process.communicate(timeout=90)
+        process.wait(timeout=120)
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
+    stdout, stderr = (tmp_path / "stdout.txt").read_text(), (tmp_path / "stderr.txt").read_text()
     assert process.returncode == 130, stderr[-2000:]
     assert "cancelled" in stdout and "previous model kept" in stdout
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr

@@ -252,23 +252,28 @@ def run_finetune_job(args: argparse.Namespace) -> int:
     job = FinetuneJob(config)
     # A terminal's Ctrl-C goes to the whole process group; only this process should react, by cancelling.
     # The worker ignores SIGINT itself once running; inheriting "ignore" covers its start-up as well.
+    # Here Ctrl-C only sets a flag: a KeyboardInterrupt raised at an arbitrary point could land inside a
+    # read of the worker's message pipe and leave it half-read, so the cancel could never be heard.
+    interrupted: list[bool] = []
     previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         job.start()
+        signal.signal(signal.SIGINT, lambda *_: interrupted.append(True))
+        display = _JobProgress(int(config.steps))
+        started = time.monotonic()
+        try:
+            cancelling = False
+            while job.state == "running":
+                job.wait(timeout=0.2, interval=0.2, on_message=display)
+                if interrupted and not cancelling:
+                    display.write("cancelling; the previous model stays in place")
+                    job.cancel()  # job.poll terminates a worker that does not stop within its grace period
+                    cancelling = True
+        finally:
+            job.close()
+            display.close()
     finally:
         signal.signal(signal.SIGINT, previous_handler)
-    display = _JobProgress(int(config.steps))
-    started = time.monotonic()
-    try:
-        try:
-            job.wait(interval=0.2, on_message=display)
-        except KeyboardInterrupt:
-            display.write("cancelling; the previous model stays in place")
-            job.cancel()
-            job.wait(timeout=30, interval=0.2, on_message=display)
-    finally:
-        job.close()
-        display.close()
     if job.state == "succeeded":
         result = job.result
         final = display.last_training
