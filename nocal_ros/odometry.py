@@ -37,6 +37,17 @@ Covariance (how it is derived)
     The twist covariance is ``Sigma_xi / dt^2``. A frame with no motion estimate (the first frame, or
     one after a reset) reports a twist covariance of :data:`UNKNOWN_VARIANCE`, ROS's "unknown".
 
+Two-view geometry (on by default: ``two_view=True``)
+    On cameras it never saw, the pose head's rotation is no better than reporting no motion
+    (docs/RESULTS.md), while the learnt camera is good enough for classical geometry. So, when the model
+    carries a camera, each pair is also measured by :mod:`nocal_ros.two_view`: corners tracked from the
+    previous frame, turned into rays by the learnt camera (intrinsics and distortion MLP), and an
+    essential matrix (or a pure rotation when the parallax is below a pixel). Its rotation replaces the
+    pose head's; its direction of travel, scaled to the length of the pose head's translation, replaces
+    the translation (monocular geometry has no scale). A pair where no geometric model explains at least
+    half of the tracks keeps the pose head's estimate (``OdometryResult.motion_source`` says which).
+    The covariance still uses the pose head's recorded error, an upper bound for the rotation.
+
 Dropped frames and resets
     The frame period is the smallest stamp step seen recently (drops only lengthen steps). A step of
     ``g = round(dt / period)`` frames with ``g <= max_gap`` (the largest gap training used) is run as one
@@ -69,6 +80,7 @@ from nocal_ros.geometry import invert_transform, so3_log
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
+    from nocal_ros.two_view import TwoViewTracker
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +216,8 @@ class OdometryResult:
             started for that reason.
         gap: frames spanned by the pair (0 when no pair was run).
         inference_ms: time spent in the pose head for this frame.
+        motion_source: where the pair's motion came from: ``"pose_head"``, or ``"essential"`` /
+            ``"rotation"`` when two-view geometry gave the rotation (see the module notes).
     """
 
     stamp_ns: int
@@ -216,6 +230,7 @@ class OdometryResult:
     status: str
     gap: int
     inference_ms: float = 0.0
+    motion_source: str = "pose_head"
 
 
 @dataclass
@@ -231,6 +246,7 @@ class OdometryCounters:
     nonfinite_skipped: int = 0
     duplicate_stamps: int = 0
     size_rejected: int = 0
+    two_view_pairs: int = 0  # pairs whose rotation came from two-view geometry
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -280,6 +296,8 @@ class OdometryEstimator:
         precision: ``"fp32"``, or ``"fp16"`` / ``"bf16"`` autocast on CUDA.
         cuda_graphs: capture the pose head in CUDA graphs on CUDA (falls back to eager if capture fails).
         channels_last: run the convolutions in channels-last layout (faster on CPU; see BENCHMARKS.md).
+        two_view: measure each pair's rotation and direction of travel by two-view geometry through the
+            model's learnt camera (see the module notes); ignored for a model without a camera.
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -295,8 +313,10 @@ class OdometryEstimator:
         precision: str = "fp32",
         cuda_graphs: bool = True,
         channels_last: bool = True,
+        two_view: bool = True,
     ) -> None:
         self._lock = threading.RLock()
+        self.two_view = bool(two_view)
         self.channels_last = channels_last
         self.device_request = device
         self.frame_period_s = frame_period_s
@@ -317,8 +337,15 @@ class OdometryEstimator:
     def _load(self, checkpoint: Any) -> None:
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
         runner = _PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
-        self.model, self._runner = model, runner
+        self.model, self._runner, self._tracker = model, runner, self._make_tracker(model)
         self._calibration_cache.clear()
+
+    def _make_tracker(self, model: PoseModel) -> "TwoViewTracker | None":
+        if not self.two_view or model.camera is None:
+            return None
+        from nocal_ros.two_view import TwoViewTracker
+
+        return TwoViewTracker(model.camera)
 
     def reload(self, checkpoint: Any = None) -> str:
         """Swap in another model without losing the pose; returns the new model's id.
@@ -329,8 +356,9 @@ class OdometryEstimator:
         """
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
         runner = _PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
+        tracker = self._make_tracker(model)
         with self._lock:
-            self.model, self._runner = model, runner
+            self.model, self._runner, self._tracker = model, runner, tracker
             self._calibration_cache.clear()
             self._has_previous = False
         log.info("odometry: loaded model %s", model.model_id)
@@ -371,6 +399,8 @@ class OdometryEstimator:
             self._image_shape: tuple[int, int] | None = None
             self._encoding: str | None = None
             self._steps: deque[int] = deque(maxlen=PERIOD_HISTORY)
+            if self._tracker is not None:
+                self._tracker.reset()
 
     @property
     def image_size(self) -> tuple[int, int] | None:
@@ -440,6 +470,11 @@ class OdometryEstimator:
                     gap = 0
 
             slot = self._runner.load_frame(image)
+            tracker = self._tracker
+            if tracker is not None and not self._has_previous:
+                tracker.reset()
+            tracker_state = tracker.state() if tracker is not None else None
+            motion = tracker.update(image) if tracker is not None else None
             if not self._has_previous:
                 return self._start_chain(stamp_ns, "start" if status == "ok" else status)
 
@@ -449,9 +484,16 @@ class OdometryEstimator:
             if not np.isfinite(T_ci_cj).all():
                 self.counters.nonfinite_skipped += 1
                 self._runner.discard(slot)
+                if tracker is not None:
+                    tracker.restore(tracker_state)
                 log.warning("odometry: non-finite pose head output at stamp %d: frame skipped", stamp_ns)
                 return None
-            return self._integrate(stamp_ns, T_ci_cj, gap, inference_ms, status)
+            source = "pose_head"
+            if motion is not None:
+                T_ci_cj = combine_motion(T_ci_cj, motion.rotation, motion.direction)
+                source = motion.model
+                self.counters.two_view_pairs += 1
+            return self._integrate(stamp_ns, T_ci_cj, gap, inference_ms, status, source)
 
     def _start_chain(self, stamp_ns: int, status: str) -> OdometryResult:
         self._has_previous = True
@@ -459,7 +501,8 @@ class OdometryEstimator:
         unknown = np.eye(6) * UNKNOWN_VARIANCE
         return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
 
-    def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str) -> OdometryResult:
+    def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str,
+                   source: str = "pose_head") -> OdometryResult:
         dt = (stamp_ns - self._previous_stamp) * 1e-9
         T_bi_bj = self._T_base_cam @ T_ci_cj @ self._T_cam_base
         sigma_t2 = self.model.pose_error_std["translation_m"] ** 2 * gap
@@ -473,9 +516,10 @@ class OdometryEstimator:
         self.counters.pairs += 1
         if gap > 1:
             self.counters.bridged_gaps += 1
-        return self._result(stamp_ns, T_bi_bj, twist, sigma_pair / dt**2, status, gap, inference_ms)
+        return self._result(stamp_ns, T_bi_bj, twist, sigma_pair / dt**2, status, gap, inference_ms, source)
 
-    def _result(self, stamp_ns, T_prev_curr, twist, twist_cov, status, gap, inference_ms) -> OdometryResult:
+    def _result(self, stamp_ns, T_prev_curr, twist, twist_cov, status, gap, inference_ms,
+                source: str = "pose_head") -> OdometryResult:
         return OdometryResult(
             stamp_ns=stamp_ns,
             T_odom_base=self._T_odom_base.copy(),
@@ -487,6 +531,7 @@ class OdometryEstimator:
             status=status,
             gap=gap,
             inference_ms=inference_ms,
+            motion_source=source,
         )
 
     # -- calibration -------------------------------------------------------------------------------
@@ -519,6 +564,20 @@ class OdometryEstimator:
         with self._lock:
             self._calibration_cache[size] = (calibration, residual)
         return calibration, residual
+
+
+def combine_motion(T_pose_head: np.ndarray, rotation: np.ndarray, direction: np.ndarray | None) -> np.ndarray:
+    """``T_ci_cj`` with two-view geometry's rotation and direction of travel and the pose head's distance.
+
+    Monocular geometry sees the direction of the translation but not its length; the pose head, trained
+    with metric arm poses, gives the length. Without a direction (a pure-rotation fit) the pose head's
+    translation is kept.
+    """
+    T = np.array(T_pose_head, dtype=np.float64)
+    T[:3, :3] = rotation
+    if direction is not None:
+        T[:3, 3] = np.linalg.norm(T[:3, 3]) * np.asarray(direction, dtype=np.float64)
+    return T
 
 
 def fit_calibration(camera: Any, distortion_model: str = "auto") -> tuple["CameraCalibration", float]:

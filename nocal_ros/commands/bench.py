@@ -134,14 +134,28 @@ def bench_pose_head(pose_model, iterations: int, warmup: int) -> dict[str, Any]:
     return results
 
 
+def _rendered_frames(native: tuple[int, int], count: int) -> list[np.ndarray]:
+    """A rendered camera motion (the demo's camera and room): two-view tracking needs real motion."""
+    from nocal_ros.commands.demo import DEMO_SEED, demo_camera
+    from nocal_ros.data.synthetic import render_sequence
+
+    return list(render_sequence(demo_camera(*native), count, seed=DEMO_SEED, split="test").images)
+
+
 def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup: int,
-                    precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True) -> tuple[dict[str, Any], np.ndarray]:
-    """Per-frame latency of decode + OdometryEstimator.process; also returns the estimated poses."""
+                    precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True,
+                    frames: list[np.ndarray] | None = None) -> tuple[dict[str, Any], np.ndarray]:
+    """Per-frame latency of decode + OdometryEstimator.process; also returns the estimated poses.
+
+    Without ``frames`` the pose head path alone is timed (two-view geometry off); with rendered
+    ``frames`` two-view geometry runs too (when the model has a camera).
+    """
     from nocal_ros.data.bags import decode_image
     from nocal_ros.odometry import OdometryEstimator
 
-    estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs, channels_last=channels_last)
-    frames = _frames(native, 16)
+    estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs,
+                                  channels_last=channels_last, two_view=frames is not None)
+    frames = frames if frames is not None else _frames(native, 16)
     messages = [_image_message(frame, 0) for frame in frames]
     period = 33_333_333
     state = {"k": 0}
@@ -157,7 +171,8 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
     ms = _time(step, pose_model.device, iterations, warmup)
     stats = _stats(ms)
     stats.update(precision=precision, cuda_graphs=bool(getattr(estimator._runner, "graphs", None)),
-                 layout="channels_last" if channels_last else "contiguous")
+                 layout="channels_last" if channels_last else "contiguous",
+                 two_view_pairs=estimator.counters.two_view_pairs, pairs=estimator.counters.pairs)
     return stats, np.asarray(poses)
 
 
@@ -197,6 +212,9 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         # The pose head alone first: the estimator converts the model's weights to its layout.
         entry["pose_head"] = bench_pose_head(pose_model, args.iterations, args.warmup)
         entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup, channels_last=layout)
+        if pose_model.camera is not None:
+            entry["estimator_two_view"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
+                                                             channels_last=layout, frames=_rendered_frames(native, 16))
         if device.type == "cuda":
             entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
                                                           cuda_graphs=False, channels_last=layout)
@@ -218,7 +236,8 @@ def format_bench(report: dict[str, Any]) -> str:
         lines.append(f"  pose head, batch 1:   median {head['batch1']['median_ms']:.3f} ms, p90 {head['batch1']['p90_ms']:.3f} ms per pair")
         lines.append(f"  pose head, batch 32:  {head['batch32']['pairs_per_s']:.0f} pairs/s "
                      f"({head['batch32']['median_ms']:.2f} ms per batch)")
-        for key, label in (("estimator", "estimator"), ("estimator_eager", "estimator, no graphs"),
+        for key, label in (("estimator", "estimator"), ("estimator_two_view", "estimator + two-view"),
+                           ("estimator_eager", "estimator, no graphs"),
                            ("estimator_fp16", "estimator, fp16")):
             if key in entry:
                 e = entry[key]
@@ -226,8 +245,10 @@ def format_bench(report: dict[str, Any]) -> str:
                 if "difference_vs_fp32" in e:
                     d = e["difference_vs_fp32"]
                     extra = f" (vs fp32: {d['max_translation_mm']:.3f} mm, {d['max_rotation_deg']:.4f} deg max)"
+                what = "decode + resize + pose head + integration" + (" + tracking and two-view fit; rendered frames"
+                                                                      if key == "estimator_two_view" else "")
                 lines.append(f"  {label + ':':<22}median {e['median_ms']:.3f} ms, p90 {e['p90_ms']:.3f} ms per frame "
-                             f"(decode + resize + pose head + integration; {e['layout']}){extra}")
+                             f"({what}; {e['layout']}){extra}")
     return "\n".join(lines)
 
 

@@ -51,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--frame-period", type=float, default=None, help="camera frame period in s (default: from stamps)")
     parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "rational_polynomial"))
+    parser.add_argument("--no-two-view", action="store_true",
+                        help="pose head only: no rotation and direction from tracked corners through the learnt camera")
     parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
@@ -71,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         T_base_cam = make_transform(quaternion_to_matrix(np.array([qx, qy, qz, qw])), np.array([x, y, z]))
     estimator = OdometryEstimator(
         args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
-        distortion_model=args.distortion_model,
+        distortion_model=args.distortion_model, two_view=not args.no_two_view,
     )
     result = replay_bag(
         args.bag, args.out, estimator,
