@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from nocal_ros.errors import NocalError
+from nocal_ros.geometry import nearest_rotation
 
 if TYPE_CHECKING:
     from nocal_ros.camera import CameraModel
@@ -193,10 +194,7 @@ def integrate_relative_poses(relative: np.ndarray, start: np.ndarray | None = No
     tolerance, so RPE/APE raised "not a valid SO(3) group element" on a 200-frame bag.
     """
     relative = _check_poses(relative, "relative poses")
-    u, _, vt = np.linalg.svd(relative[:, :3, :3])
-    flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)  # nearest proper rotation (det +1), not a reflection
-    u[:, :, -1] *= flip[:, None]
-    relative[:, :3, :3] = u @ vt
+    relative[:, :3, :3] = nearest_rotation(relative[:, :3, :3])
     trajectory = np.empty((len(relative) + 1, 4, 4))
     trajectory[0] = np.eye(4) if start is None else start
     for i, T in enumerate(relative):

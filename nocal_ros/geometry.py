@@ -100,6 +100,18 @@ def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return transform
 
 
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The proper rotation nearest to each ``(..., 3, 3)`` matrix (Frobenius norm), by SVD.
+
+    Network rotations are float32, orthonormal to ~1e-7 only; chained over ~100 pairs they leave SO(3)
+    by more than evo's 1e-6 tolerance, so every chain of them goes through this first.
+    """
+    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)  # det +1: a rotation, not a reflection
+    u[..., :, -1] *= flip[..., None]
+    return u @ vt
+
+
 def invert_transform(transform: np.ndarray) -> np.ndarray:
     """Closed-form inverse of a rigid 4x4 transform."""
     inverse = np.eye(4)

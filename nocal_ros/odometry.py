@@ -76,7 +76,7 @@ import numpy as np
 import torch
 
 from nocal_ros.errors import NocalError
-from nocal_ros.geometry import invert_transform, so3_log
+from nocal_ros.geometry import invert_transform, nearest_rotation, so3_log
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
@@ -504,6 +504,8 @@ class OdometryEstimator:
     def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str,
                    source: str = "pose_head") -> OdometryResult:
         dt = (stamp_ns - self._previous_stamp) * 1e-9
+        T_ci_cj = T_ci_cj.copy()
+        T_ci_cj[:3, :3] = nearest_rotation(T_ci_cj[:3, :3])  # float32 rotations would drift off SO(3) when chained
         T_bi_bj = self._T_base_cam @ T_ci_cj @ self._T_cam_base
         sigma_t2 = self.model.pose_error_std["translation_m"] ** 2 * gap
         sigma_r2 = self.model.pose_error_std["rotation_rad"] ** 2 * gap

@@ -88,6 +88,17 @@ def test_composes_known_relative_poses_exactly():
     assert estimator.counters.pairs == 29
 
 
+def test_a_long_chain_of_float32_rotations_stays_a_rotation():
+    # The pose head's rotations are float32; 300 of them chained as they came left SO(3) by more than
+    # evo's 1e-6 and `nocal odometry --no-two-view` raised on a 200-frame bag.
+    T_w_c = random_trajectory(300, seed=5)
+    estimator, _ = make_estimator(T_w_c)
+    for k in range(300):
+        result = estimator.process(START_NS + k * PERIOD_NS, frame(k % 256))
+    R = result.T_odom_base[:3, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12
+
+
 def test_twist_is_the_pair_motion_over_the_stamp_step_in_the_base_frame():
     T_w_c = random_trajectory(3, seed=1)
     estimator, _ = make_estimator(T_w_c, T_base_cam=MOUNT)
