@@ -114,6 +114,9 @@ def running(checkpoint):
         parameter_overrides=[
             Parameter("model_path", value=str(checkpoint)),
             Parameter("device", value="cpu"),
+            # The network path alone, so the expected pose below can be computed from the network;
+            # two-view geometry has its own tests (test_two_view.py).
+            Parameter("two_view", value=False),
             Parameter("base_frame", value="base_link"),
             Parameter("tf_timeout", value=1.0),
             Parameter("diagnostics_period", value=0.2),
@@ -172,6 +175,7 @@ def test_node_publishes_odometry_camera_info_and_tf_with_the_image_stamps(runnin
     # The network's camera motion on the resized frames, moved to the base frame through the static
     # TF mounting, computed here independently of the estimator.
     assert np.allclose(node.estimator.T_base_cam, T_BASE_CAM, atol=1e-6)
+    assert node.estimator.two_view is False  # the parameter reached the estimator
     T_cam = np.eye(4)
     for k in range(len(frames) - 1):
         T_cam = T_cam @ predict(node.estimator.model.module, frames[k], frames[k + 1])
