@@ -399,8 +399,6 @@ class OdometryEstimator:
             self._image_shape: tuple[int, int] | None = None
             self._encoding: str | None = None
             self._steps: deque[int] = deque(maxlen=PERIOD_HISTORY)
-            if self._tracker is not None:
-                self._tracker.reset()
 
     @property
     def image_size(self) -> tuple[int, int] | None:
@@ -471,11 +469,10 @@ class OdometryEstimator:
 
             slot = self._runner.load_frame(image)
             tracker = self._tracker
-            if tracker is not None and not self._has_previous:
-                tracker.reset()
-            tracker_state = tracker.state() if tracker is not None else None
-            motion = tracker.update(image) if tracker is not None else None
             if not self._has_previous:
+                if tracker is not None:
+                    tracker.reset()
+                    tracker.update(image)  # the chain's first frame becomes the tracker's reference
                 return self._start_chain(stamp_ns, "start" if status == "ok" else status)
 
             start = time.perf_counter()
@@ -483,12 +480,11 @@ class OdometryEstimator:
             inference_ms = (time.perf_counter() - start) * 1e3
             if not np.isfinite(T_ci_cj).all():
                 self.counters.nonfinite_skipped += 1
-                self._runner.discard(slot)
-                if tracker is not None:
-                    tracker.restore(tracker_state)
+                self._runner.discard(slot)  # the tracker has not seen this frame, so it pairs the next one alike
                 log.warning("odometry: non-finite pose head output at stamp %d: frame skipped", stamp_ns)
                 return None
             source = "pose_head"
+            motion = tracker.update(image) if tracker is not None else None
             if motion is not None:
                 T_ci_cj = combine_motion(T_ci_cj, motion.rotation, motion.direction)
                 source = motion.model

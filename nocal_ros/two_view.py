@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 import torch
 
+from nocal_ros.geometry import nearest_rotation, rotation_angle_deg
+
 #: Fewest tracks, and fewest model inliers, that a motion estimate needs.
 MIN_TRACKS = 20
 #: Share of the tracks a model must explain to be believed.
@@ -59,10 +61,11 @@ class TwoViewMotion:
 
 
 def rotation_from_rays(rays_i: np.ndarray, rays_j: np.ndarray) -> np.ndarray:
-    """Least-squares ``R`` with ``rays_j ~ R @ rays_i`` (Kabsch): ``(N, 3)`` unit rays x 2 -> ``(3, 3)``."""
-    U, _, Vt = np.linalg.svd(rays_j.T @ rays_i)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    """Least-squares ``R`` with ``rays_j ~ R @ rays_i`` (Kabsch): ``(N, 3)`` unit rays x 2 -> ``(3, 3)``.
+
+    Kabsch's answer is the rotation nearest to the cross-covariance ``sum_n rays_j[n] rays_i[n]^T``.
+    """
+    return nearest_rotation(rays_j.T @ rays_i)
 
 
 def _rotation_ransac(rays_i: np.ndarray, rays_j: np.ndarray, threshold: float, rng: np.random.Generator,
@@ -70,10 +73,7 @@ def _rotation_ransac(rays_i: np.ndarray, rays_j: np.ndarray, threshold: float, r
     """Pure-rotation model ``rays_j = R rays_i`` by RANSAC on pairs of rays; returns ``R`` and the inlier mask."""
     samples = rng.integers(0, len(rays_i), (iterations, 2))  # a repeated ray makes a hypothesis that loses
     # Every hypothesis at once: batched Kabsch on (iterations, 3, 3) cross-covariances.
-    U, _, Vt = np.linalg.svd(np.einsum("sni,snj->sij", rays_j[samples], rays_i[samples]))
-    signs = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= signs[:, None]
-    hypotheses = U @ Vt
+    hypotheses = nearest_rotation(np.einsum("sni,snj->sij", rays_j[samples], rays_i[samples]))
     residuals = np.linalg.norm(np.einsum("sij,nj->sni", hypotheses, rays_i) - rays_j[None], axis=2)
     best = residuals[np.argmax((residuals < threshold).sum(1))] < threshold
     if best.sum() < 2:
@@ -134,8 +134,7 @@ def relative_motion(points_i: np.ndarray, points_j: np.ndarray, threshold: float
 
 
 def _checked(motion: TwoViewMotion) -> TwoViewMotion | None:
-    angle = np.degrees(np.arccos(np.clip((np.trace(motion.rotation) - 1.0) / 2.0, -1.0, 1.0)))
-    return motion if angle <= MAX_ROTATION_DEG else None
+    return motion if rotation_angle_deg(motion.rotation) <= MAX_ROTATION_DEG else None
 
 
 class TwoViewTracker:
@@ -159,25 +158,16 @@ class TwoViewTracker:
         """Forget the previous frame (a new pair chain)."""
         self._previous = None
 
-    def state(self) -> Any:
-        """The reference frame, for :meth:`restore` (the estimator skips frames the pose head rejects)."""
-        return self._previous, self._frame_size
-
-    def restore(self, state: Any) -> None:
-        """Make a frame taken by :meth:`state` the reference again."""
-        self._previous, self._frame_size = state
-
-    def _gray(self, image: np.ndarray) -> tuple[np.ndarray, float]:
+    def _gray(self, image: np.ndarray) -> np.ndarray:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
         width = gray.shape[1]
         if width > self.work_width:
-            scale = self.work_width / width
-            gray = cv2.resize(gray, (self.work_width, round(gray.shape[0] * scale)), interpolation=cv2.INTER_AREA)
-            return gray, width / self.work_width
-        return gray, 1.0
+            height = round(gray.shape[0] * self.work_width / width)
+            gray = cv2.resize(gray, (self.work_width, height), interpolation=cv2.INTER_AREA)
+        return gray
 
     def _normalised(self, pixels: np.ndarray, width: int, height: int) -> np.ndarray:
-        """Frame pixels ``(N, 2)`` -> undistorted normalised points through the learnt camera."""
+        """Pixels ``(N, 2)`` of a ``width x height`` image -> undistorted normalised points through the learnt camera."""
         sx, sy = self.camera.width / width, self.camera.height / height
         u = torch.from_numpy((pixels[:, 0] + 0.5) * sx - 0.5)
         v = torch.from_numpy((pixels[:, 1] + 0.5) * sy - 0.5)
@@ -189,7 +179,7 @@ class TwoViewTracker:
         height, width = image.shape[:2]
         if self._frame_size != (width, height):
             self._previous, self._frame_size = None, (width, height)
-        gray, scale = self._gray(image)
+        gray = self._gray(image)
         # Corners at full resolution: detected at half resolution they doubled the rotation error (measured).
         corners = cv2.goodFeaturesToTrack(gray, self.max_corners, 0.01, max(3, gray.shape[1] // 40))
         previous, self._previous = self._previous, (gray, corners)
@@ -203,9 +193,8 @@ class TwoViewTracker:
         good = (status.ravel() == 1) & (status_back.ravel() == 1) & (np.linalg.norm((back - points).reshape(-1, 2), axis=1) < 0.5)
         if good.sum() < MIN_TRACKS:
             return None
-        pixels_i = (points.reshape(-1, 2)[good].astype(np.float64) + 0.5) * scale - 0.5
-        pixels_j = (tracked.reshape(-1, 2)[good].astype(np.float64) + 0.5) * scale - 0.5
-        x_i = self._normalised(pixels_i, width, height)
-        x_j = self._normalised(pixels_j, width, height)
-        fx = float(self.camera.intrinsics()[0]) * width / self.camera.width
-        return relative_motion(x_i, x_j, threshold=scale / fx)
+        work_height, work_width = gray.shape
+        x_i = self._normalised(points.reshape(-1, 2)[good].astype(np.float64), work_width, work_height)
+        x_j = self._normalised(tracked.reshape(-1, 2)[good].astype(np.float64), work_width, work_height)
+        fx = float(self.camera.intrinsics()[0]) * work_width / self.camera.width  # focal in tracked pixels
+        return relative_motion(x_i, x_j, threshold=1.0 / fx)  # one tracked pixel
