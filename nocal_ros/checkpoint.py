@@ -85,6 +85,11 @@ def _write_atomic(path: Path, data: bytes) -> None:
         os.close(directory)
 
 
+#: Sidecar name of each :data:`~nocal_ros.camera.DISTORTION_FORMS` entry (``mlp``: the raw output, the
+#: only form before the centred one, so older files keep their meaning).
+DISTORTION_TYPES = {"raw": "mlp", "centred": "mlp_centred"}
+
+
 def _camera_facts(camera: CameraModel) -> dict[str, Any]:
     fx, fy, cx, cy = (float(v.detach()) for v in camera.intrinsics())
     linear = [m for m in camera.distortion if isinstance(m, torch.nn.Linear)]
@@ -95,7 +100,7 @@ def _camera_facts(camera: CameraModel) -> dict[str, Any]:
         "fy": fy,
         "cx": cx,
         "cy": cy,
-        "distortion": {"type": "mlp", "layers": len(linear), "hidden": linear[0].out_features},
+        "distortion": {"type": DISTORTION_TYPES[camera.distortion_form], "layers": len(linear), "hidden": linear[0].out_features},
         "stage": camera.stage,
     }
 
@@ -240,8 +245,12 @@ def _build(path: Path, sidecar: dict[str, Any], tensors: dict[str, torch.Tensor]
         raise CheckpointError(f"{sidecar_path(path)}: 'cameras' must be a list")
     for index, fact in enumerate(facts):
         try:
-            camera = CameraModel(int(fact["width"]), int(fact["height"]))
-        except (KeyError, TypeError, ValueError) as error:
+            distortion_type = (fact.get("distortion") or {}).get("type", "mlp")
+            forms = {name: form for form, name in DISTORTION_TYPES.items()}
+            if distortion_type not in forms:
+                raise ValueError(f"unknown distortion type {distortion_type!r}; this software reads {sorted(forms)}")
+            camera = CameraModel(int(fact["width"]), int(fact["height"]), distortion_form=forms[distortion_type])
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
             raise CheckpointError(f"{sidecar_path(path)}: camera {index} is malformed ({error})") from None
         _load_strict(camera, tensors, f"camera.{index}.", path)
         intrinsics = [float(v.detach()) for v in camera.intrinsics()]

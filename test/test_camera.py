@@ -96,8 +96,14 @@ def test_gradient_reaches_every_camera_parameter_only_in_the_learnt_stages():
     backward()
     optimiser.step()
     backward()
+    # The centred form subtracts the MLP's value at the image centre, which the last bias only shifts:
+    # that bias cancels exactly, and its gradient is exactly zero. Everything else learns.
+    cancelled = f"distortion.{len(camera.distortion) - 1}.bias"
     for name, parameter in camera.named_parameters():
-        assert parameter.grad is not None and torch.count_nonzero(parameter.grad) > 0, name
+        if name == cancelled:
+            assert parameter.grad is not None and torch.count_nonzero(parameter.grad) == 0, name
+        else:
+            assert parameter.grad is not None and torch.count_nonzero(parameter.grad) > 0, name
 
     camera.set_stage("focal")
     backward()
@@ -213,3 +219,35 @@ def test_rectification_maps_match_opencv(lens_and_camera):
     # and the maps work with cv2.remap as they are
     image = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
     assert cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR).shape == image.shape
+
+
+def test_centred_distortion_starts_at_second_order_at_the_image_centre():
+    """The centred correction has zero value and zero first derivative at the image centre (checked with
+    autograd, independently of the closed-form Jacobian the camera uses); the raw form is the MLP itself."""
+    torch.manual_seed(3)
+    camera = CameraModel(64, 48).double()
+    with torch.no_grad():
+        for module in camera.distortion:
+            if isinstance(module, torch.nn.Linear):
+                module.weight.normal_(0, 0.7)
+                module.bias.normal_(0, 0.3)
+    centre = torch.tensor([(64 - 1) / 2.0, (48 - 1) / 2.0], dtype=torch.float64, requires_grad=True)
+    correction = camera.distortion_correction(centre[0:1], centre[1:2])[0]
+    assert torch.allclose(correction, torch.zeros(2, dtype=torch.float64), atol=1e-12)
+    jacobian = torch.stack([torch.autograd.grad(correction[k], centre, retain_graph=True)[0] for k in range(2)])
+    assert torch.allclose(jacobian, torch.zeros(2, 2, dtype=torch.float64), atol=1e-12)
+    # Away from the centre it is not zero, and it differs from the raw MLP by an affine map only.
+    u, v = torch.tensor([3.0, 50.0, 20.0], dtype=torch.float64), torch.tensor([7.0, 40.0, 10.0], dtype=torch.float64)
+    centred = camera.distortion_correction(u, v)
+    raw = camera.distortion(camera.distortion_input(u, v))
+    assert centred.abs().max() > 1e-3
+    camera.distortion_form = "raw"
+    assert torch.equal(camera.distortion_correction(u, v), raw)
+    inputs = camera.distortion_input(u, v)
+    affine = torch.linalg.lstsq(torch.cat((inputs, torch.ones(3, 1, dtype=torch.float64)), 1), raw - centred).residuals
+    assert affine.numel() == 0 or affine.abs().max() < 1e-20  # 3 points, 3 unknowns: exact
+
+
+def test_unknown_distortion_form_is_refused():
+    with pytest.raises(ValueError, match="distortion form"):
+        CameraModel(64, 48, distortion_form="spline")

@@ -178,3 +178,21 @@ def test_resolves_model_store_directories(saved):
     path, _, _ = saved
     loaded = load_checkpoint(path.parent)  # a version directory holding model.safetensors
     assert loaded.path == path
+
+
+def test_distortion_form_is_kept_and_older_files_read_as_the_raw_form(saved):
+    path, _, camera = saved
+    side = json.loads(sidecar_path(path).read_text())
+    assert side["cameras"][0]["distortion"]["type"] == "mlp_centred"
+    assert load_checkpoint(path).cameras[0].distortion_form == "centred"
+    # Files written before the centred form say "mlp": the MLP's output is the correction as it stands.
+    side["cameras"][0]["distortion"]["type"] = "mlp"
+    sidecar_path(path).write_text(json.dumps(side))
+    old = load_checkpoint(path).cameras[0]
+    assert old.distortion_form == "raw"
+    u, v = torch.tensor([0.0, 10.0, 63.0]), torch.tensor([5.0, 40.0, 47.0])
+    assert torch.equal(old.distortion_correction(u, v), camera.distortion(camera.distortion_input(u, v)))
+    side["cameras"][0]["distortion"]["type"] = "spline"
+    sidecar_path(path).write_text(json.dumps(side))
+    with pytest.raises(CheckpointError, match="unknown distortion type 'spline'"):
+        load_checkpoint(path)
