@@ -10,7 +10,7 @@ Departures from the paper's formulas, and why:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -54,9 +54,15 @@ class LossTerms:
     translation: torch.Tensor
     rotation: torch.Tensor
     latent: torch.Tensor
+    #: The arm-pose epipolar term on the camera (:mod:`nocal_ros.epipolar`), unweighted; zero when off.
+    epipolar: torch.Tensor = field(default_factory=lambda: torch.zeros(()))
 
     def as_floats(self) -> dict[str, float]:
-        return {name: float(getattr(self, name).detach()) for name in ("total", "photometric", "translation", "rotation", "latent")}
+        return {name: float(getattr(self, name).detach()) for name in TERM_NAMES}
+
+
+#: Logged names of :class:`LossTerms`, in CSV column order.
+TERM_NAMES = ("total", "photometric", "translation", "rotation", "latent", "epipolar")
 
 
 def nocal_loss(

@@ -38,7 +38,8 @@ from torch import nn
 
 from nocal_ros.camera import PAPER_EQUIVALENT_INTRINSICS_LR, STAGES, CameraModel
 from nocal_ros.errors import ConfigError, NocalError
-from nocal_ros.losses import PAPER_WEIGHTS, LossTerms, nocal_loss
+from nocal_ros.epipolar import ArmCorrespondences, arm_correspondences, epipolar_loss
+from nocal_ros.losses import PAPER_WEIGHTS, TERM_NAMES, LossTerms, nocal_loss
 from nocal_ros.model import NOCaL, model_config
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,10 @@ DEFAULT_TRAINING_CONFIG: dict[str, Any] = {
     # repeats N steps that train only the networks, then M steps that train only the camera (network
     # frozen). None trains both on every step (the paper). See camera_phase().
     "alternate": None,
+    # Arm-pose epipolar term on the camera (nocal_ros.epipolar): points tracked between arm-posed frames
+    # at most max_gap apart must satisfy the epipolar constraint through the learnt camera. It steps the
+    # camera on every step of the focal and full stages (it needs no labelled batch). weight 0: off.
+    "epipolar": {"weight": 1.0, "max_gap": 8, "max_points": 6000},
 }
 
 OPTIMISER_GROUPS = ("encoder", "hypernetwork", "distortion", "intrinsics")
@@ -127,7 +132,10 @@ def _validate(config: dict[str, Any], source: str) -> None:
         and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in alternate.values())
     ):
         raise ConfigError(f"{source}: alternate must be null or {{network: N, camera: M}} with positive integers, got {alternate!r}")
-    for name, value in {**config["learning_rates"], **config["loss_weights"]}.items():
+    epipolar = config["epipolar"]
+    positive_int("epipolar.max_gap", epipolar["max_gap"])
+    positive_int("epipolar.max_points", epipolar["max_points"])
+    for name, value in {**config["learning_rates"], **config["loss_weights"], "epipolar.weight": epipolar["weight"]}.items():
         if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             raise ConfigError(f"{source}: {name} must be a finite non-negative number, got {value!r}")
 
@@ -290,33 +298,54 @@ def optimisation_step(
     cfg: dict[str, Any],
     world: "_DistributedContext | None" = None,
     phase: str = "both",
+    correspondences: Sequence[ArmCorrespondences | None] | None = None,
 ) -> LossTerms | None:
     """One step of every optimiser on one batch. A non-finite loss changes nothing and is returned.
 
-    ``phase`` (see :func:`camera_phase`): ``"network"`` steps only the encoder and hypernetwork,
-    ``"camera"`` only the camera's intrinsics and distortion, ``"both"`` all four. Returns None when
-    nothing would step (an unlabelled batch in a camera phase with ``camera_from_labelled_only``).
+    ``phase`` (see :func:`camera_phase`): ``"network"`` steps only the encoder and hypernetwork (and
+    the camera by the epipolar term alone), ``"camera"`` only the camera's intrinsics and distortion,
+    ``"both"`` all four. ``correspondences`` (one entry per camera, None where a camera has none) adds
+    ``cfg["epipolar"]["weight"]`` times :func:`~nocal_ros.epipolar.epipolar_loss` to every trainable
+    camera on every step. Returns None when nothing would step (an unlabelled batch in a camera phase
+    with ``camera_from_labelled_only`` and no epipolar term).
     """
     device = batch["image_i"].device
     camera_skipped = cfg["camera_from_labelled_only"] and not bool(batch["labelled"].any())
-    if phase == "camera" and camera_skipped:
+    epipolar_weight = float(cfg["epipolar"]["weight"]) if correspondences else 0.0
+    geometric = [(camera, corr) for camera, corr in zip(cameras, correspondences or [])
+                 if corr is not None and epipolar_weight > 0 and camera.stage != "fixed"]
+    photometric_step = not (phase == "camera" and camera_skipped)
+    if not photometric_step and not geometric:
         # Nothing would step: skip the forward pass (the sampler has already drawn the batch).
         return None
-    with _autocast(device, cfg["mixed_precision"]):
-        terms, _ = pair_loss(network, cameras, batch, pixel_index, cfg["loss_weights"])
-    if not torch.isfinite(terms.total):
-        return terms
     for optimiser in optimisers.values():
         optimiser.zero_grad(set_to_none=True)
-    terms.total.backward()
     camera_parameters = [p for camera in cameras for p in camera.parameters()]
-    if camera_skipped or phase == "network":
-        # A predicted pose can absorb a focal error (image shift ~ f * angle), so an unlabelled
-        # pair's focal gradient follows the encoder's bias; only known poses anchor the camera.
-        # (Every rank draws a labelled batch at the same step, so all ranks skip together.)
-        for parameter in camera_parameters:
-            parameter.grad = None
-    elif world is not None:
+    if photometric_step:
+        with _autocast(device, cfg["mixed_precision"]):
+            terms, _ = pair_loss(network, cameras, batch, pixel_index, cfg["loss_weights"])
+        if not torch.isfinite(terms.total):
+            return terms
+        terms.total.backward()
+        if camera_skipped or phase == "network":
+            # A predicted pose can absorb a focal error (image shift ~ f * angle), so an unlabelled
+            # pair's focal gradient follows the encoder's bias; only known poses anchor the camera.
+            # (Every rank draws a labelled batch at the same step, so all ranks skip together.)
+            for parameter in camera_parameters:
+                parameter.grad = None
+    else:
+        zero = torch.zeros((), device=device)
+        terms = LossTerms(total=zero, photometric=zero, translation=zero, rotation=zero, latent=zero)
+    if geometric:
+        # Deterministic (every correspondence, every step): same on every rank, and exact on resume.
+        geometric_loss = sum(epipolar_loss(camera, corr) for camera, corr in geometric) / len(geometric)
+        if not torch.isfinite(geometric_loss):
+            terms.total = terms.total + geometric_loss.detach()
+            return terms
+        (epipolar_weight * geometric_loss).backward()
+        terms.epipolar = geometric_loss.detach()
+        terms.total = terms.total.detach() + epipolar_weight * terms.epipolar
+    if world is not None and (geometric or not (camera_skipped or phase == "network")):
         world.average_gradients(camera_parameters)
     if cfg["square_pixels_until_full"] and cameras and cameras[0].stage == "focal":
         # One focal length until the full stage: the mean focal is well constrained by known poses
@@ -331,7 +360,7 @@ def optimisation_step(
         nn.utils.clip_grad_norm_([p for o in optimisers.values() for g in o.param_groups for p in g["params"]
                                   if p.grad is not None], cfg["grad_clip"])
     for name, optimiser in optimisers.items():
-        if phase == "camera" and name in ("encoder", "hypernetwork"):
+        if name in ("encoder", "hypernetwork") and (phase == "camera" or not photometric_step):
             continue
         optimiser.step()
     return terms
@@ -368,6 +397,26 @@ def default_cameras(sequences: Sequence[Any], camera_init: dict[str, Any] | None
         else:
             cameras.append(CameraModel(width, height))
     return cameras
+
+
+def sequence_correspondences(
+    sequences: Sequence[Any], cameras: Sequence[CameraModel], settings: dict[str, Any], device: torch.device
+) -> list[ArmCorrespondences | None] | None:
+    """Arm-pose correspondences of each sequence in its camera's native pixels (None where it has none),
+    or None when the epipolar term is off or no sequence has any. Tracked once before training: a few
+    seconds per sequence."""
+    if not settings["weight"]:
+        return None
+    found = []
+    for sequence, camera in zip(sequences, cameras):
+        corr = arm_correspondences(sequence.images, sequence.arm_poses, max_gap=settings["max_gap"], max_points=settings["max_points"])
+        if corr is None:
+            log.info("%s: no two arm-posed frames within %d frames; no epipolar term for its camera", sequence.name, settings["max_gap"])
+            found.append(None)
+            continue
+        width, height = sequence.image_size
+        found.append(corr.in_native_pixels((width, height), (camera.width, camera.height)).to(device))
+    return found if any(c is not None for c in found) else None
 
 
 class _DistributedContext:
@@ -472,6 +521,7 @@ def train(
     dataset = PairDataset(sequences, size=(width, height), gap_range=tuple(cfg["gap_range"]),
                           labelled_every=cfg["labelled_every"], seed=cfg["seed"])
     sampler = PairSampler(dataset, cfg["batch_size"], cfg["labelled_every"], seed=cfg["seed"] + 1000 * world.rank)
+    correspondences = sequence_correspondences(sequences, cameras, cfg["epipolar"], device)
     pixel_generator = torch.Generator().manual_seed(cfg["seed"] + 1 + 1000 * world.rank)
     step = 0
     if resume_path is not None:
@@ -525,8 +575,7 @@ def train(
         csv_file = open(metrics_path, "w" if new_file else "a", newline="")
         csv_writer = csv.writer(csv_file)
         if new_file:
-            csv_writer.writerow(["step", "stage", "loss", "photometric", "translation", "rotation", "latent",
-                                 "fx", "fy", "cx", "cy", "elapsed_s"])
+            csv_writer.writerow(["step", "stage", "loss", *TERM_NAMES[1:], "fx", "fy", "cx", "cy", "elapsed_s"])
 
     # -------- loop --------
     history: list[dict[str, Any]] = []
@@ -549,7 +598,7 @@ def train(
             batch = sampler.next_batch(device)
             pixel_index = torch.randperm(width * height, generator=pixel_generator)[: cfg["rays_per_image"]].to(device)
             phase = camera_phase(step, cfg["curriculum"], cfg["alternate"])
-            terms = optimisation_step(network, cameras, optimisers, batch, pixel_index, cfg, world, phase)
+            terms = optimisation_step(network, cameras, optimisers, batch, pixel_index, cfg, world, phase, correspondences)
             if terms is not None and not torch.isfinite(terms.total):
                 raise NocalError(
                     f"training diverged at step {step}: loss is {float(terms.total.detach())}"
@@ -570,8 +619,7 @@ def train(
                           "eta_s": (cfg["steps"] - step) / rate if rate > 0 else float("inf")}
                 history.append(record)
                 if csv_file is not None:
-                    csv_writer.writerow([step, stage] + [f"{means[k]:.6g}" for k in
-                                        ("total", "photometric", "translation", "rotation", "latent")]
+                    csv_writer.writerow([step, stage] + [f"{means[k]:.6g}" for k in TERM_NAMES]
                                         + [f"{v:.4f}" for v in (fx, fy, cx, cy)] + [f"{elapsed:.1f}"])
                     csv_file.flush()
                 if progress is not None:

@@ -137,6 +137,34 @@ def _checked(motion: TwoViewMotion) -> TwoViewMotion | None:
     return motion if rotation_angle_deg(motion.rotation) <= MAX_ROTATION_DEG else None
 
 
+def gray_image(image: np.ndarray) -> np.ndarray:
+    """RGB or mono uint8 ``(H, W[, 3])`` -> mono uint8 ``(H, W)``."""
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def detect_corners(gray: np.ndarray, max_corners: int) -> np.ndarray | None:
+    """Up to ``max_corners`` Shi-Tomasi corners ``(N, 1, 2)`` float32 of a mono image, or None.
+
+    Corners at full resolution: detected at half resolution they doubled the rotation error (measured).
+    """
+    return cv2.goodFeaturesToTrack(gray, int(max_corners), 0.01, max(3, gray.shape[1] // 40))
+
+
+def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Track ``corners`` of image ``i`` into image ``j`` (pyramidal Lucas-Kanade, forward and back).
+
+    Returns the matched pixels ``(M, 2)`` float64 in ``i`` and in ``j``: only tracks that come back to
+    within half a pixel of where they started (a track that does not is a mismatch).
+    """
+    points = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 1, 2)
+    if len(points) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_i, gray_j, points, None, winSize=WINDOW, maxLevel=PYRAMID_LEVELS)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_j, gray_i, tracked, None, winSize=WINDOW, maxLevel=PYRAMID_LEVELS)
+    good = (status.ravel() == 1) & (status_back.ravel() == 1) & (np.linalg.norm((back - points).reshape(-1, 2), axis=1) < 0.5)
+    return points.reshape(-1, 2)[good].astype(np.float64), tracked.reshape(-1, 2)[good].astype(np.float64)
+
+
 class TwoViewTracker:
     """Tracks corners from frame to frame and measures each pair's motion through a camera model.
 
@@ -159,7 +187,7 @@ class TwoViewTracker:
         self._previous = None
 
     def _gray(self, image: np.ndarray) -> np.ndarray:
-        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        gray = gray_image(image)
         width = gray.shape[1]
         if width > self.work_width:
             height = round(gray.shape[0] * self.work_width / width)
@@ -180,21 +208,15 @@ class TwoViewTracker:
         if self._frame_size != (width, height):
             self._previous, self._frame_size = None, (width, height)
         gray = self._gray(image)
-        # Corners at full resolution: detected at half resolution they doubled the rotation error (measured).
-        corners = cv2.goodFeaturesToTrack(gray, self.max_corners, 0.01, max(3, gray.shape[1] // 40))
+        corners = detect_corners(gray, self.max_corners)
         previous, self._previous = self._previous, (gray, corners)
         if previous is None or previous[1] is None or len(previous[1]) < MIN_TRACKS:
             return None
-        previous_gray, points = previous
-        points = points.astype(np.float32)
-        tracked, status, _ = cv2.calcOpticalFlowPyrLK(previous_gray, gray, points, None, winSize=WINDOW, maxLevel=PYRAMID_LEVELS)
-        back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray, previous_gray, tracked, None, winSize=WINDOW, maxLevel=PYRAMID_LEVELS)
-        # Forward-backward check: a track that does not come back to where it started is a mismatch.
-        good = (status.ravel() == 1) & (status_back.ravel() == 1) & (np.linalg.norm((back - points).reshape(-1, 2), axis=1) < 0.5)
-        if good.sum() < MIN_TRACKS:
+        points_i, points_j = track_corners(previous[0], gray, previous[1])
+        if len(points_i) < MIN_TRACKS:
             return None
         work_height, work_width = gray.shape
-        x_i = self._normalised(points.reshape(-1, 2)[good].astype(np.float64), work_width, work_height)
-        x_j = self._normalised(tracked.reshape(-1, 2)[good].astype(np.float64), work_width, work_height)
+        x_i = self._normalised(points_i, work_width, work_height)
+        x_j = self._normalised(points_j, work_width, work_height)
         fx = float(self.camera.intrinsics()[0]) * work_width / self.camera.width  # focal in tracked pixels
         return relative_motion(x_i, x_j, threshold=1.0 / fx)  # one tracked pixel

@@ -49,12 +49,15 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def test_short_training_lowers_photometric_loss_and_moves_focal_towards_truth(one_thread):
+@pytest.mark.parametrize("epipolar_weight", [0.0, 1.0])
+def test_short_training_lowers_photometric_loss_and_moves_focal_towards_truth(one_thread, epipolar_weight):
     """The key test: from 1.15x the true focal, a short CPU run recovers most of the error.
 
     Every batch is labelled here (the arm supplies poses): known poses are what anchor the focal
     length (an unlabelled pair's predicted rotation can absorb a focal error, image shift ~ f * angle).
-    Measured over 5 scene/seed combinations: the focal error fell to 9-49 % of its initial 7.5 px.
+    With the photometric loss alone (epipolar weight 0), measured over 5 scene/seed combinations: the
+    focal error fell to 9-49 % of its initial 7.5 px. With the arm-pose epipolar term (the default)
+    the camera is pinned by geometry and the error falls much further.
     """
     torch.manual_seed(0)
     true_focal = 50.0
@@ -66,6 +69,7 @@ def test_short_training_lowers_photometric_loss_and_moves_focal_towards_truth(on
         learning_rates={"encoder": 1e-3, "hypernetwork": 1e-3, "distortion": 5e-6, "intrinsics": 5e-3},
         model=dict(encoder_channels=[16, 32, 64, 64, 64, 64, 64], latent_dim=64, scene_width=64, pose_width=64,
                    hyper_width=64, hyper_depth=2, hyper_rank=8, lfn_width=64, lfn_layers=4, lfn_frequencies=6),
+        epipolar={"weight": epipolar_weight},
     )
     result = train(config, [sequence], device="cpu")
     history = result.history
@@ -73,7 +77,7 @@ def test_short_training_lowers_photometric_loss_and_moves_focal_towards_truth(on
     initial_error = 0.15 * true_focal
     final_error = abs((fx + fy) / 2 - true_focal)
     assert history[-1]["photometric"] < 0.85 * history[0]["photometric"], history
-    assert final_error < 0.6 * initial_error, (fx, fy)
+    assert final_error < (0.6 if epipolar_weight == 0 else 0.1) * initial_error, (fx, fy)
     assert abs(fx - true_focal) < initial_error and abs(fy - true_focal) < initial_error, (fx, fy)
 
 

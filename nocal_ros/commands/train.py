@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(f"{record['stage']} loss {record['loss']:.4f} fx {record['fx']:.1f} fy {record['fy']:.1f} "
                                 f"cx {record['cx']:.1f} cy {record['cy']:.1f}")
             if writer is not None:
-                for key in ("loss", "photometric", "translation", "rotation", "latent", "fx", "fy", "cx", "cy"):
+                for key in ("loss", "photometric", "translation", "rotation", "latent", "epipolar", "fx", "fy", "cx", "cy"):
                     writer.add_scalar(key, record[key], record["step"])
 
         try:
