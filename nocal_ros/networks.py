@@ -93,6 +93,14 @@ class PairEncoder(nn.Module):
         z = self.scene_head(features.mean(dim=(2, 3)))
         return translation, rot6d, z
 
+    @torch.no_grad()
+    def scale_translation(self, factor: float) -> None:
+        """Multiply every predicted translation by ``factor`` (exactly: the pose head's last layer is
+        linear, and its first three outputs are the translation)."""
+        last = self.pose_head[-1]
+        last.weight[:3].mul_(factor)
+        last.bias[:3].mul_(factor)
+
     def pose(self, image_i: torch.Tensor, image_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pose only: ``translation (B, 3), rot6d (B, 6)``, skipping the scene head."""
         return self._pose(self._features(image_i, image_j))

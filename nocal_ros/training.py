@@ -82,6 +82,11 @@ DEFAULT_TRAINING_CONFIG: dict[str, Any] = {
     # at most max_gap apart must satisfy the epipolar constraint through the learnt camera. It steps the
     # camera on every step of the focal and full stages (it needs no labelled batch). weight 0: off.
     "epipolar": {"weight": 1.0, "max_gap": 8, "max_points": 6000},
+    # After the last step, scale the pose head's translation so that its lengths on consecutive
+    # arm-posed frames (the gap the odometry runs at) match the arm's, by least squares
+    # (fit_translation_scale). Why: the pose head's length is near-constant per model, and training
+    # over gaps 1..8 with unlabelled pairs left it 6x too long at gap 1 (measured, docs/RESULTS.md).
+    "translation_scale_fit": True,
 }
 
 OPTIMISER_GROUPS = ("encoder", "hypernetwork", "distortion", "intrinsics")
@@ -382,6 +387,7 @@ class TrainResult:
     stopped: bool  # True when should_stop() ended the run early
     history: list[dict[str, Any]] = field(default_factory=list)
     checkpoint: Path | None = None  # the final model file (no optimiser state), when out_dir was given
+    translation_scale: dict[str, float] | None = None  # fit_translation_scale's result, when it ran
 
 
 def default_cameras(sequences: Sequence[Any], camera_init: dict[str, Any] | None = None) -> list[CameraModel]:
@@ -630,10 +636,56 @@ def train(
         if csv_file is not None:
             csv_file.close()
 
-    save("last.safetensors", with_state=True)
+    save("last.safetensors", with_state=True)  # before the scale fit: resuming continues the run as it was
+    scale_fit = None
+    if cfg["translation_scale_fit"] and not stopped:  # a finishing step: a stopped run is one to resume
+        scale_fit = fit_translation_scale(model, sequences, (width, height), device=device)
+        if scale_fit is None:
+            log.info("no two consecutive arm-posed frames: the pose head's translation scale is left as trained")
+        else:
+            model.encoder.scale_translation(scale_fit["factor"])
+            log.info("translation scale x%.4f from %d arm-posed consecutive pairs (length RMS %.4f -> %.4f m)",
+                     scale_fit["factor"], scale_fit["pairs"], scale_fit["rms_before_m"], scale_fit["rms_after_m"])
+    metadata = {**(metadata or {}), **({"translation_scale": scale_fit} if scale_fit else {})}
     final = save("model.safetensors", with_state=False)
     return TrainResult(model=model, cameras=cameras, step=step, stage=stage, stopped=stopped,
-                       history=history, checkpoint=final)
+                       history=history, checkpoint=final, translation_scale=scale_fit)
+
+
+@torch.no_grad()
+def fit_translation_scale(
+    model: NOCaL, sequences: Sequence[Any], image_size: tuple[int, int], gap: int = 1,
+    device: str | torch.device = "cpu", batch_size: int = 32,
+) -> dict[str, float] | None:
+    """Least-squares factor on the pose head's translation length over arm-posed pairs ``gap`` apart.
+
+    ``factor = sum |t_pred| |t_arm| / sum |t_pred|^2`` minimises ``sum (factor |t_pred| - |t_arm|)^2``.
+    Lengths, not vectors: the odometry takes the direction of travel from two-view geometry and only
+    the length from the pose head. Returns ``{factor, pairs, rms_before_m, rms_after_m}``, or None when
+    no such pairs exist (or the head predicts no translation at all).
+    """
+    from nocal_ros.data.pairs import PairDataset
+
+    dataset = PairDataset(sequences, size=image_size, gap_range=(gap, gap))
+    labelled = dataset.labelled_indices()
+    if len(labelled) == 0:
+        return None
+    was_training = model.training
+    model.eval()
+    predicted, true = [], []
+    for start in range(0, len(labelled), batch_size):
+        batch = dataset.collate(labelled[start:start + batch_size])
+        T = model.predict_pose(batch["image_i"].to(device), batch["image_j"].to(device))
+        predicted.append(T[:, :3, 3].norm(dim=-1).double().cpu())
+        true.append(batch["T_ci_cj"][:, :3, 3].norm(dim=-1).double())
+    model.train(was_training)
+    predicted, true = torch.cat(predicted), torch.cat(true)
+    energy = float((predicted * predicted).sum())
+    if not math.isfinite(energy) or energy <= 0.0:
+        return None
+    factor = float((predicted * true).sum()) / energy
+    rms = lambda lengths: float((lengths - true).square().mean().sqrt())  # noqa: E731
+    return {"factor": factor, "pairs": int(len(true)), "rms_before_m": rms(predicted), "rms_after_m": rms(factor * predicted)}
 
 
 def benchmark_steps(

@@ -1,5 +1,6 @@
 """The training loop on real rendered sequences: learning, exact resume, stopping, fine-tuning, DDP."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -172,3 +173,37 @@ def test_torchrun_two_cpu_processes(small_sequences, tmp_path):
     sidecar = json.loads((tmp_path / "run" / "model.json").read_text())
     assert sidecar["metadata"]["world_size"] == 2
     assert len((tmp_path / "run" / "metrics.csv").read_text().splitlines()) == 2  # header + step 4 (log_every 5)
+
+
+def test_translation_scale_fit_matches_the_arm_lengths_and_is_saved(small_sequences, tmp_path, one_thread):
+    """After the last step the pose head's translation is scaled by the least-squares factor on the
+    arm's consecutive pairs (closed form recomputed here); rotation is untouched; a stopped run is not scaled."""
+    from nocal_ros.data.pairs import PairDataset
+    from nocal_ros.training import fit_translation_scale
+
+    result = train(TINY, small_sequences, out_dir=tmp_path, device="cpu")
+    fit = result.translation_scale
+    assert fit is not None and fit["pairs"] > 0 and fit["factor"] > 0
+    assert fit["rms_after_m"] <= fit["rms_before_m"]
+    # the saved model predicts factor x the unscaled (resumable) model's translation, the same rotation
+    unscaled = load_checkpoint(tmp_path / "last.safetensors").model
+    scaled = load_checkpoint(tmp_path / "model.safetensors")
+    assert scaled.metadata["metadata"]["translation_scale"] == pytest.approx(fit)
+    dataset = PairDataset(small_sequences, size=tuple(TINY["image_size"]), gap_range=(1, 1))
+    batch = dataset.collate(dataset.labelled_indices())
+    with torch.no_grad():
+        before = unscaled.predict_pose(batch["image_i"], batch["image_j"])
+        after = scaled.model.predict_pose(batch["image_i"], batch["image_j"])
+    assert torch.allclose(after[:, :3, 3], fit["factor"] * before[:, :3, 3], rtol=1e-5, atol=1e-7)
+    assert torch.allclose(after[:, :3, :3], before[:, :3, :3])
+    predicted = before[:, :3, 3].norm(dim=-1).double().numpy()
+    true = batch["T_ci_cj"][:, :3, 3].norm(dim=-1).double().numpy()
+    assert fit["factor"] == pytest.approx(float(np.dot(predicted, true) / np.dot(predicted, predicted)), rel=1e-5)
+    # fitted again, the scaled model needs no further scale
+    again = fit_translation_scale(scaled.model, small_sequences, tuple(TINY["image_size"]))
+    assert again["factor"] == pytest.approx(1.0, rel=1e-4)
+    # no arm poses: nothing to fit
+    unlabelled = [dataclasses.replace(s, arm_poses=np.full_like(s.arm_poses, np.nan)) for s in small_sequences]
+    assert fit_translation_scale(scaled.model, unlabelled, tuple(TINY["image_size"])) is None
+    stopped = train(TINY, small_sequences, device="cpu", should_stop=lambda: True)
+    assert stopped.stopped and stopped.translation_scale is None
