@@ -60,8 +60,8 @@ DISTORTION_LAYERS = 4
 #: parametric lens model (plumb_bob's included). Why: an MLP that adds ``e * x`` is indistinguishable
 #: from a focal length ``(1 + e)`` times larger (and a constant from a shifted principal point); with
 #: the raw output, fitting the Table I barrel lens (true f 600) from arm-pose geometry alone took the
-#: focal from 573 px after the focal stage to 489 / 497 px while the MLP absorbed the difference; centred,
-#: to 597 / 599 px (``scripts/epipolar/fit_camera.py``, docs/RESULTS.md). ``"raw"``: the output as is,
+#: focal from 573 px after the focal stage to 457 / 470 px while the MLP absorbed the difference; centred,
+#: to within 0.1-0.6 % of 600 px (``scripts/epipolar/fit_camera.py``, docs/RESULTS.md). ``"raw"``: the output as is,
 #: the form of models saved before the centred one (checkpoint distortion type ``mlp``). The centred
 #: form cancels the last layer's bias exactly: it is kept so that both forms share one state dict.
 DISTORTION_FORMS = ("centred", "raw")

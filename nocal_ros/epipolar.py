@@ -17,7 +17,7 @@ between ``d_i`` and the epipolar plane (radians for small errors). Where the arm
 The focal length is only separable from the distortion because the camera's correction starts at
 second order at the image centre (:data:`nocal_ros.camera.DISTORTION_FORMS`); with the MLP's raw
 output the fit traded focal for distortion freely (measured on the Table I barrel lens, true f 600:
-raw 489 / 497 px, centred 597 / 599 px).
+raw 457 / 470 px, centred within 0.1-0.6 %; docs/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -89,6 +89,7 @@ def arm_correspondences(
     max_gap: int = 8,
     max_corners: int = 300,
     max_points: int = 6000,
+    max_pairs: int = 400,
 ) -> ArmCorrespondences | None:
     """Track corners between every pair of arm-posed frames at most ``max_gap`` frames apart.
 
@@ -100,37 +101,40 @@ def arm_correspondences(
         max_corners: corners detected per frame.
         max_points: at most this many correspondences are kept, evenly over the pairs' points, so one
             evaluation of the loss stays cheap.
+        max_pairs: at most this many frame pairs are tracked, evenly over the candidates, so that a
+            long bag with an arm pose on every frame is not tracked 8 times over (each pair gives up
+            to ``max_corners`` points; a few hundred pairs already give far more than ``max_points``).
 
     Returns:
         The correspondences, or None when no two arm-posed frames are within ``max_gap`` of each other.
     """
     labelled = np.flatnonzero(np.isfinite(arm_poses).all(axis=(1, 2)))
+    candidates = [(i, j) for a, i in enumerate(labelled) for j in labelled[a + 1:] if j - i <= max_gap]
+    if len(candidates) > max_pairs:
+        candidates = [candidates[k] for k in np.linspace(0, len(candidates) - 1, max_pairs).round().astype(int)]
     pixels_i, pixels_j, rotations, baselines = [], [], [], []
     pairs = 0
     grays: dict[int, np.ndarray] = {}
     corners: dict[int, np.ndarray | None] = {}
-    for a, i in enumerate(labelled):
-        for j in labelled[a + 1:]:
-            if j - i > max_gap:
-                break
-            for k in (i, j):
-                if k not in grays:
-                    grays[k] = gray_image(images[k])
-                    corners[k] = detect_corners(grays[k], max_corners)
-            if corners[i] is None:
-                continue
-            points_i, points_j = track_corners(grays[i], grays[j], corners[i])
-            if len(points_i) == 0:
-                continue
-            T_ci_cj = np.linalg.inv(arm_poses[i]) @ arm_poses[j]
-            t = T_ci_cj[:3, 3]
-            norm = np.linalg.norm(t)
-            direction = t / norm if norm > 1e-9 else np.zeros(3)
-            pixels_i.append(points_i)
-            pixels_j.append(points_j)
-            rotations.append(np.broadcast_to(T_ci_cj[:3, :3], (len(points_i), 3, 3)))
-            baselines.append(np.broadcast_to(direction, (len(points_i), 3)))
-            pairs += 1
+    for i, j in candidates:
+        for k in (i, j):
+            if k not in grays:
+                grays[k] = gray_image(images[k])
+                corners[k] = detect_corners(grays[k], max_corners)
+        if corners[i] is None:
+            continue
+        points_i, points_j = track_corners(grays[i], grays[j], corners[i])
+        if len(points_i) == 0:
+            continue
+        T_ci_cj = np.linalg.inv(arm_poses[i]) @ arm_poses[j]
+        t = T_ci_cj[:3, 3]
+        norm = np.linalg.norm(t)
+        direction = t / norm if norm > 1e-9 else np.zeros(3)
+        pixels_i.append(points_i)
+        pixels_j.append(points_j)
+        rotations.append(np.broadcast_to(T_ci_cj[:3, :3], (len(points_i), 3, 3)))
+        baselines.append(np.broadcast_to(direction, (len(points_i), 3)))
+        pairs += 1
     if not pairs:
         return None
     pixels_i, pixels_j = np.concatenate(pixels_i), np.concatenate(pixels_j)
@@ -178,6 +182,8 @@ def epipolar_loss(camera, correspondences: ArmCorrespondences, residual_scale_px
     (:data:`GATE_SIGMAS`, at least :data:`MIN_GATE_FRACTION`) are mismatched tracks and do not count.
     """
     residuals, usable = epipolar_residuals(camera, correspondences)
+    if not bool(usable.any()):  # every point at an epipole: no constraint, and no NaN from an empty mean
+        return residuals.sum() * 0.0
     scale = residual_scale_px / camera.width
     magnitude = residuals.detach().abs()
     gate = max(MIN_GATE_FRACTION, GATE_SIGMAS * 1.4826 * float(magnitude[usable].median()))

@@ -142,3 +142,18 @@ def test_training_with_the_epipolar_term_moves_the_focal_without_labelled_batche
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
     assert "epipolar" in header
     assert result.history[0]["epipolar"] == 0.0 and result.history[-1]["epipolar"] > 0  # off in the fixed stage
+
+
+def test_long_bags_track_at_most_max_pairs_and_degenerate_points_give_a_zero_loss(rendered):
+    _, sequence = rendered
+    few = arm_correspondences(sequence.images, sequence.ground_truth, max_gap=8, max_pairs=5)
+    assert few is not None and few.pairs <= 5
+    # every point on the baseline (at the epipole): no constraint, a finite zero loss with a gradient path
+    corr = ArmCorrespondences(torch.tensor([[79.5, 59.5]] * 3), torch.tensor([[79.5, 59.5]] * 3),
+                              torch.eye(3).expand(3, 3, 3), torch.tensor([[0.0, 0.0, 1.0]] * 3), 1)
+    camera = CameraModel(WIDTH, HEIGHT)
+    camera.set_stage("focal")
+    loss = epipolar_loss(camera, corr)
+    assert float(loss.detach()) == 0.0
+    loss.backward()
+    assert torch.isfinite(camera.log_fx_rel.grad)
