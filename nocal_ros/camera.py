@@ -246,7 +246,10 @@ class CameraModel(nn.Module):
         """Camera-frame unit ray directions ``(h * w, 3)`` (row-major) for a ``w x h`` image of this camera."""
         width = self.width if width is None else int(width)
         height = self.height if height is None else int(height)
-        u, v = self.native_coordinates(width, height)
+        return self.pixel_rays(*self.native_coordinates(width, height))
+
+    def pixel_rays(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Camera-frame unit ray directions ``(..., 3)`` of native pixels ``(u, v)`` (differentiable)."""
         xy = self.undistorted_normalised(u, v)
         rays = torch.cat((xy, torch.ones_like(xy[..., :1])), dim=-1)
         return torch.nn.functional.normalize(rays, dim=-1)

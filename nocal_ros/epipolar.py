@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 from nocal_ros.two_view import detect_corners, gray_image, track_corners
 
@@ -147,12 +146,6 @@ def arm_correspondences(
     return ArmCorrespondences(as_tensor(pixels_i), as_tensor(pixels_j), as_tensor(rotations), as_tensor(baselines), pairs)
 
 
-def camera_rays(camera, pixels: torch.Tensor) -> torch.Tensor:
-    """Unit camera-frame rays ``(N, 3)`` of native ``pixels (N, 2)`` through ``camera`` (differentiable)."""
-    xy = camera.undistorted_normalised(pixels[:, 0], pixels[:, 1])
-    return F.normalize(torch.cat((xy, torch.ones_like(xy[:, :1])), dim=-1), dim=-1)
-
-
 def epipolar_residuals(camera, correspondences: ArmCorrespondences) -> tuple[torch.Tensor, torch.Tensor]:
     """Angular residuals ``(N,)`` of the correspondences through ``camera``, and a mask of usable ones.
 
@@ -160,8 +153,9 @@ def epipolar_residuals(camera, correspondences: ArmCorrespondences) -> tuple[tor
     (near the epipole the plane it must lie in is undefined).
     """
     dtype = camera.log_fx_rel.dtype
-    rays_i = camera_rays(camera, correspondences.pixels_i.to(dtype))
-    rays_j = camera_rays(camera, correspondences.pixels_j.to(dtype))
+    pixels_i, pixels_j = correspondences.pixels_i.to(dtype), correspondences.pixels_j.to(dtype)
+    rays_i = camera.pixel_rays(pixels_i[:, 0], pixels_i[:, 1])
+    rays_j = camera.pixel_rays(pixels_j[:, 0], pixels_j[:, 1])
     rotated_j = torch.einsum("nab,nb->na", correspondences.rotation.to(dtype), rays_j)
     baseline = correspondences.baseline.to(dtype)
     normal = torch.linalg.cross(baseline, rotated_j)
