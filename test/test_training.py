@@ -207,3 +207,12 @@ def test_translation_scale_fit_matches_the_arm_lengths_and_is_saved(small_sequen
     assert fit_translation_scale(scaled.model, unlabelled, tuple(TINY["image_size"])) is None
     stopped = train(TINY, small_sequences, device="cpu", should_stop=lambda: True)
     assert stopped.stopped and stopped.translation_scale is None
+
+
+def test_benchmark_steps_run_the_configured_epipolar_term(small_sequences, one_thread):
+    from nocal_ros.training import benchmark_steps
+
+    figures = benchmark_steps(TINY, small_sequences, steps=2, warmup=1, device="cpu")
+    assert figures["epipolar_points"] > 0 and figures["median_ms"] > 0
+    assert benchmark_steps({**TINY, "epipolar": {"weight": 0.0}}, small_sequences, steps=2, warmup=1,
+                           device="cpu")["epipolar_points"] == 0
