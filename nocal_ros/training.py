@@ -81,6 +81,7 @@ DEFAULT_TRAINING_CONFIG: dict[str, Any] = {
     # Arm-pose epipolar term on the camera (nocal_ros.epipolar): points tracked between arm-posed frames
     # at most max_gap apart must satisfy the epipolar constraint through the learnt camera. It steps the
     # camera on every step of the focal and full stages (it needs no labelled batch). weight 0: off.
+    # max_points: over all sequences together.
     "epipolar": {"weight": 1.0, "max_gap": 8, "max_points": 6000},
     # After the last step, scale the pose head's translation so that its lengths on consecutive
     # arm-posed frames (the gap the odometry runs at) match the arm's, by least squares
@@ -311,14 +312,17 @@ def optimisation_step(
     the camera by the epipolar term alone), ``"camera"`` only the camera's intrinsics and distortion,
     ``"both"`` all four. ``correspondences`` (one entry per camera, None where a camera has none) adds
     ``cfg["epipolar"]["weight"]`` times :func:`~nocal_ros.epipolar.epipolar_loss` to every trainable
-    camera on every step. Returns None when nothing would step (an unlabelled batch in a camera phase
+    camera of the batch on every step. Returns None when nothing would step (an unlabelled batch in a camera phase
     with ``camera_from_labelled_only`` and no epipolar term).
     """
     device = batch["image_i"].device
     camera_skipped = cfg["camera_from_labelled_only"] and not bool(batch["labelled"].any())
     epipolar_weight = float(cfg["epipolar"]["weight"]) if correspondences else 0.0
-    geometric = [(camera, corr) for camera, corr in zip(cameras, correspondences or [])
-                 if corr is not None and epipolar_weight > 0 and camera.stage != "fixed"]
+    # The cameras of this batch only, as for the photometric loss: with 16 pretraining cameras, every
+    # camera on every step made a step 1.8x slower (measured, BENCHMARKS.md).
+    in_batch = set(batch["camera_index"].tolist())
+    geometric = [(camera, corr) for index, (camera, corr) in enumerate(zip(cameras, correspondences or []))
+                 if corr is not None and epipolar_weight > 0 and camera.stage != "fixed" and index in in_batch]
     photometric_step = not (phase == "camera" and camera_skipped)
     if not photometric_step and not geometric:
         # Nothing would step: skip the forward pass (the sampler has already drawn the batch).
@@ -410,12 +414,18 @@ def sequence_correspondences(
 ) -> list[ArmCorrespondences | None] | None:
     """Arm-pose correspondences of each sequence in its camera's native pixels (None where it has none),
     or None when the epipolar term is off or no sequence has any. Tracked once before training: a few
-    seconds per sequence."""
+    seconds per sequence.
+
+    ``settings["max_points"]`` is shared by the sequences with arm poses, so that the term's points
+    do not grow with the number of cameras.
+    """
     if not settings["weight"]:
         return None
+    posed = sum(int(sequence.labelled.sum()) >= 2 for sequence in sequences)
+    budget = max(1, settings["max_points"] // max(1, posed))
     found = []
     for sequence, camera in zip(sequences, cameras):
-        corr = arm_correspondences(sequence.images, sequence.arm_poses, max_gap=settings["max_gap"], max_points=settings["max_points"])
+        corr = arm_correspondences(sequence.images, sequence.arm_poses, max_gap=settings["max_gap"], max_points=budget)
         if corr is None:
             log.info("%s: no two arm-posed frames within %d frames; no epipolar term for its camera", sequence.name, settings["max_gap"])
             found.append(None)

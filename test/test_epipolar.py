@@ -1,6 +1,8 @@
 """The arm-pose epipolar term: residuals against a closed form, a camera fit against OpenCV's projection,
 correspondences tracked on rendered frames, and its use in the training loop."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -122,6 +124,11 @@ def test_correspondences_follow_the_camera_resolution(rendered):
     double, = sequence_correspondences([sequence], [CameraModel(2 * WIDTH, 2 * HEIGHT)], settings, torch.device("cpu"))
     assert torch.allclose(double.pixels_i, 2 * same.pixels_i + 0.5)
     assert sequence_correspondences([sequence], [CameraModel(WIDTH, HEIGHT)], {**settings, "weight": 0.0}, "cpu") is None
+    # the point budget is shared by the sequences with arm poses (a step costs the same with many cameras)
+    unposed = dataclasses.replace(sequence, arm_poses=np.full_like(sequence.arm_poses, np.nan))
+    first, second, third = sequence_correspondences([sequence, sequence, unposed], [CameraModel(WIDTH, HEIGHT)] * 3,
+                                                    settings, torch.device("cpu"))
+    assert len(same) == 500 and len(first) == len(second) == 250 and third is None
 
 
 def test_training_with_the_epipolar_term_moves_the_focal_without_labelled_batches(rendered, tmp_path):
