@@ -318,13 +318,15 @@ def optimisation_step(
     device = batch["image_i"].device
     camera_skipped = cfg["camera_from_labelled_only"] and not bool(batch["labelled"].any())
     epipolar_weight = float(cfg["epipolar"]["weight"]) if correspondences else 0.0
-    # The cameras of this batch only, as for the photometric loss: with 16 pretraining cameras, every
-    # camera on every step made a step 1.8x slower (measured, BENCHMARKS.md).
+    # Whether the term is on at this step is the same on every rank (the collectives below depend on
+    # it); which cameras it covers is not: those of this rank's batch, as for the photometric loss
+    # (every camera on every step: 346 vs 222 ms per step with 16 pretraining cameras; BENCHMARKS.md).
+    epipolar_on = [(index, camera, corr) for index, (camera, corr) in enumerate(zip(cameras, correspondences or []))
+                   if corr is not None and epipolar_weight > 0 and camera.stage != "fixed"]
     in_batch = set(batch["camera_index"].tolist())
-    geometric = [(camera, corr) for index, (camera, corr) in enumerate(zip(cameras, correspondences or []))
-                 if corr is not None and epipolar_weight > 0 and camera.stage != "fixed" and index in in_batch]
+    geometric = [(camera, corr) for index, camera, corr in epipolar_on if index in in_batch]
     photometric_step = not (phase == "camera" and camera_skipped)
-    if not photometric_step and not geometric:
+    if not photometric_step and not epipolar_on:
         # Nothing would step: skip the forward pass (the sampler has already drawn the batch).
         return None
     for optimiser in optimisers.values():
@@ -346,7 +348,7 @@ def optimisation_step(
         zero = torch.zeros((), device=device)
         terms = LossTerms(total=zero, photometric=zero, translation=zero, rotation=zero, latent=zero)
     if geometric:
-        # Deterministic (every correspondence, every step): same on every rank, and exact on resume.
+        # Every correspondence of each camera, every step: deterministic given the batch, so exact on resume.
         geometric_loss = sum(epipolar_loss(camera, corr) for camera, corr in geometric) / len(geometric)
         if not torch.isfinite(geometric_loss):
             terms.total = terms.total + geometric_loss.detach()
@@ -354,7 +356,7 @@ def optimisation_step(
         (epipolar_weight * geometric_loss).backward()
         terms.epipolar = geometric_loss.detach()
         terms.total = terms.total.detach() + epipolar_weight * terms.epipolar
-    if world is not None and (geometric or not (camera_skipped or phase == "network")):
+    if world is not None and (epipolar_on or not (camera_skipped or phase == "network")):
         world.average_gradients(camera_parameters)
     if cfg["square_pixels_until_full"] and cameras and cameras[0].stage == "focal":
         # One focal length until the full stage: the mean focal is well constrained by known poses

@@ -175,6 +175,32 @@ def test_torchrun_two_cpu_processes(small_sequences, tmp_path):
     assert len((tmp_path / "run" / "metrics.csv").read_text().splitlines()) == 2  # header + step 4 (log_every 5)
 
 
+def test_torchrun_epipolar_term_when_ranks_see_different_cameras(small_sequences, tmp_path):
+    """One batch per rank of one camera, only one camera with arm poses: the ranks' epipolar terms
+    cover different cameras, and the gradient averaging must still match on both ranks (no hang)."""
+    from nocal_ros.data.bags import write_sequence
+
+    unposed = dataclasses.replace(small_sequences[1], arm_poses=np.full_like(small_sequences[1].arm_poses, np.nan))
+    bags = ["--bag", str(write_sequence(small_sequences[0], tmp_path / "posed.mcap")),
+            "--bag", str(write_sequence(unposed, tmp_path / "unposed.mcap"))]
+    config = tmp_path / "ddp.yaml"
+    config.write_text(json.dumps({**{k: v for k, v in TINY.items() if k != "learning_rates"},
+                                  "steps": 12, "batch_size": 1, "labelled_every": 1000, "log_every": 4,
+                                  "curriculum": {"fixed": 1, "focal": 100}, "alternate": {"network": 1, "camera": 3}}))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    completed = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone",
+         "-m", "nocal_ros.cli", "train", "--config", str(config), "--out", str(tmp_path / "run"), "--device", "cpu", *bags],
+        capture_output=True, text=True, timeout=180, env=env, cwd=tmp_path)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    epipolar = [float(row.split(",")[header.index("epipolar")]) for row in rows[1:]]
+    assert len(epipolar) == 3 and max(epipolar) > 0  # the term ran
+    loaded = load_checkpoint(tmp_path / "run" / "model.safetensors")
+    assert float(loaded.cameras[0].log_fx_rel.detach()) != 0.0  # the posed camera moved from f = width
+
+
 def test_translation_scale_fit_matches_the_arm_lengths_and_is_saved(small_sequences, tmp_path, one_thread):
     """After the last step the pose head's translation is scaled by the least-squares factor on the
     arm's consecutive pairs (closed form recomputed here); rotation is untouched; a stopped run is not scaled."""

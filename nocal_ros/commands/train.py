@@ -123,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
+    from nocal_ros.losses import TERM_NAMES
     from nocal_ros.training import train, training_config
 
     if args.config is None:
@@ -169,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(f"{record['stage']} loss {record['loss']:.4f} fx {record['fx']:.1f} fy {record['fy']:.1f} "
                                 f"cx {record['cx']:.1f} cy {record['cy']:.1f}")
             if writer is not None:
-                for key in ("loss", "photometric", "translation", "rotation", "latent", "epipolar", "fx", "fy", "cx", "cy"):
+                for key in ("loss", *TERM_NAMES[1:], "fx", "fy", "cx", "cy"):
                     writer.add_scalar(key, record[key], record["step"])
 
         try:
