@@ -1,0 +1,42 @@
+"""Monocular visual odometry through the learnt camera (no ROS here).
+
+The odometry node, ``nocal odometry`` and ``nocal demo`` all feed frames to
+:class:`~nocal_ros.odometry.estimator.OdometryEstimator`. Files, by thread of work:
+
+* ``estimator.py``: the per-frame entry point: frames in, poses, twist and covariances out;
+* ``pose_head.py``: the NOCaL pose head and its runner;
+* ``covariance.py``: pose covariance propagation;
+* ``mailbox.py``: handing frames from a ROS executor to the worker thread.
+"""
+
+from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
+from nocal_ros.odometry.estimator import (
+    FrameError,
+    FrameSizeError,
+    OdometryCounters,
+    OdometryEstimator,
+    OdometryResult,
+    combine_motion,
+    fit_calibration,
+)
+from nocal_ros.odometry.mailbox import FrameMailbox
+from nocal_ros.odometry.pose_head import DEFAULT_MAX_GAP, DEFAULT_POSE_ERROR_STD, PoseModel, PoseRunner, resolve_device
+
+__all__ = [
+    "DEFAULT_MAX_GAP",
+    "DEFAULT_POSE_ERROR_STD",
+    "FrameError",
+    "FrameMailbox",
+    "FrameSizeError",
+    "OdometryCounters",
+    "OdometryEstimator",
+    "OdometryResult",
+    "PoseModel",
+    "PoseRunner",
+    "UNKNOWN_VARIANCE",
+    "adjoint",
+    "combine_motion",
+    "fit_calibration",
+    "propagate_covariance",
+    "resolve_device",
+]
