@@ -7,6 +7,7 @@ inlier mask, the camera prior and the marginal covariance against the spread ove
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import cv2
@@ -279,6 +280,29 @@ def test_points_behind_a_camera_do_not_crash_and_are_not_inliers():
     assert solution.success, solution.message
     assert not solution.inliers[(pt == bad_point) & (kf == 4)].any()
     assert solution.inliers[pt != bad_point].mean() > 0.99
+
+
+def test_landmarks_behind_every_camera_or_never_seen_do_not_break_the_window():
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=13)
+    moved = np.vstack([points, [[0.0, 0.0, 3.0]]])  # the last landmark has no observation at all
+    moved[0] = poses[0, :3, 3] - 3.0 * poses[0, :3, 2]  # landmark 0 is behind every keyframe
+    solution = bundle_adjust(WindowProblem(camera, poses, fixed, moved, kf, pt, pixels, covariance_of=(3,)))
+    assert solution.success, solution.message
+    assert not solution.inliers[pt == 0].any() and solution.inliers[pt != 0].all()
+    np.testing.assert_array_equal(solution.points[-1], moved[-1])
+    assert np.abs(camera_parameters(solution.calibration) / camera_parameters(camera) - 1)[:4].max() < 1e-6
+
+
+def test_problem_and_solution_pickle_for_a_worker_process():
+    """GTSAM's Python calls hold the GIL for the whole solve (a thread beside it stalls; see
+    BENCHMARKS.md), so the VO may run the backend in a process: both ends must pickle."""
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=19, landmarks=40)
+    problem = WindowProblem(camera, poses, fixed, points, kf, pt, pixels + 0.3, covariance_of=(4,))
+    solution = bundle_adjust(pickle.loads(pickle.dumps(problem)))
+    again = pickle.loads(pickle.dumps(solution))
+    np.testing.assert_array_equal(again.poses, bundle_adjust(problem).poses)
+    np.testing.assert_array_equal(again.camera_covariance, solution.camera_covariance)
+    assert again.calibration == solution.calibration
 
 
 def test_solver_failure_returns_the_start_values_with_a_flag():
