@@ -28,6 +28,7 @@ setup(
         "pyyaml",
         "tqdm",
         "scikit-image",
+        "gtsam==4.3.0",
     ],
     extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"]},
     zip_safe=True,
