@@ -330,13 +330,15 @@ class CameraModel(nn.Module):
         return copy.deepcopy(self).to(device="cpu", dtype=torch.float64).requires_grad_(False)
 
     def fit_parametric(
-        self, distortion_model: str = "plumb_bob", samples: tuple[int, int] = (64, 48), camera_name: str = "nocal"
+        self, distortion_model: str = "plumb_bob", samples: tuple[int, int] = (64, 48), camera_name: str = "nocal",
+        fix_k3: bool = False,
     ) -> "ParametricFit":
         """Least-squares fit of the learnt distortion by an OpenCV/ROS parametric model.
 
         Keeps the learnt K and finds ``D`` so that distorting the learnt undistorted point of each sampled
         native pixel lands back on that pixel (``plumb_bob``: linear least squares; ``rational_polynomial``:
-        Levenberg-Marquardt started from the plumb_bob solution). Residuals are measured in pixels.
+        Levenberg-Marquardt started from the plumb_bob solution; ``fix_k3``: plumb_bob with ``k3 = 0``).
+        Residuals are measured in pixels.
         """
         from nocal_ros.lens import CameraCalibration, distort_normalised
 
@@ -348,7 +350,7 @@ class CameraModel(nn.Module):
             undistorted = self.float64_copy().undistorted_normalised(uu.reshape(-1), vv.reshape(-1)).numpy()
         K = self.K()
         distorted = np.stack(((uu.reshape(-1).numpy() - K[0, 2]) / K[0, 0], (vv.reshape(-1).numpy() - K[1, 2]) / K[1, 1]), -1)
-        D = fit_distortion_coefficients(undistorted, distorted, distortion_model, K[0, 0], K[1, 1])
+        D = fit_distortion_coefficients(undistorted, distorted, distortion_model, K[0, 0], K[1, 1], fix_k3)
         residual = distort_normalised(undistorted, D, distortion_model) - distorted
         residual_px = residual * np.array([K[0, 0], K[1, 1]])
         calibration = CameraCalibration(
@@ -430,12 +432,13 @@ class ParametricFit:
 
 
 def fit_distortion_coefficients(
-    undistorted: np.ndarray, distorted: np.ndarray, distortion_model: str, fx: float, fy: float
+    undistorted: np.ndarray, distorted: np.ndarray, distortion_model: str, fx: float, fy: float, fix_k3: bool = False
 ) -> np.ndarray:
     """Coefficients ``D`` with ``lens.distort_normalised(undistorted, D) ~ distorted``, least squares in pixels.
 
-    ``plumb_bob`` is linear in ``(k1, k2, p1, p2, k3)``; ``rational_polynomial`` is refined by
-    Levenberg-Marquardt from the plumb_bob solution (``k4 = k5 = k6 = 0``).
+    ``plumb_bob`` is linear in ``(k1, k2, p1, p2, k3)`` (``fix_k3``: ``k3 = 0``, the form bundle adjusters
+    such as GTSAM's Cal3DS2 use); ``rational_polynomial`` is refined by Levenberg-Marquardt from the
+    plumb_bob solution (``k4 = k5 = k6 = 0``).
     """
     x, y = undistorted[:, 0], undistorted[:, 1]
     r2 = x * x + y * y
@@ -444,6 +447,10 @@ def fit_distortion_coefficients(
     rows_y = np.stack((y * r2, y * r2**2, r2 + 2 * y * y, 2 * x * y, y * r2**3), -1) * fy
     A = np.concatenate((rows_x, rows_y))
     b = np.concatenate(((distorted[:, 0] - x) * fx, (distorted[:, 1] - y) * fy))
+    if fix_k3:
+        if distortion_model != "plumb_bob":
+            raise ValueError("fix_k3 applies to plumb_bob only")
+        return np.append(np.linalg.lstsq(A[:, :4], b, rcond=None)[0], 0.0)
     plumb_bob = np.linalg.lstsq(A, b, rcond=None)[0]
     if distortion_model == "plumb_bob":
         return plumb_bob
