@@ -713,16 +713,15 @@ def _pose_from_msg(msg: Any, msgtype: str) -> np.ndarray:
     return transform_msg_to_matrix(msg.transform)
 
 
-def read_poses(
-    path: str | Path, topic: str, stamps_ns: Sequence[int] | np.ndarray, tolerance_s: float = 0.02
-) -> np.ndarray:
-    """Poses on ``topic`` (PoseStamped, PoseWithCovarianceStamped or TransformStamped) at the given
-    stamps, ``(N, 4, 4)``, NaN where no sample is within tolerance (see :class:`PoseTrack`).
+def read_pose_messages(path: str | Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pose on ``topic`` (PoseStamped, PoseWithCovarianceStamped or TransformStamped) as
+    ``(stamps_ns (N,) int64, poses (N, 4, 4))`` in the bag's order, header stamps.
 
-    Reads that one topic only: for ground truth beside :func:`iter_images`, without decoding images.
+    Reads that one topic only, without decoding images.
     """
     path = _check_path(path)
-    track = PoseTrack()
+    stamps: list[int] = []
+    poses: list[np.ndarray] = []
     with _open_bag(path) as reader:
         info = reader.topics.get(topic)
         if info is None:
@@ -732,7 +731,20 @@ def read_poses(
         connections = [c for c in reader.connections if c.topic == topic]
         for connection, bag_stamp, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, connection.msgtype)
-            track.add(_header_stamp(msg, bag_stamp), _pose_from_msg(msg, connection.msgtype))
+            stamps.append(_header_stamp(msg, bag_stamp))
+            poses.append(_pose_from_msg(msg, connection.msgtype))
+    return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+
+
+def read_poses(
+    path: str | Path, topic: str, stamps_ns: Sequence[int] | np.ndarray, tolerance_s: float = 0.02
+) -> np.ndarray:
+    """Poses on ``topic`` at the given stamps, ``(N, 4, 4)``, NaN where no sample is within tolerance
+    (see :class:`PoseTrack`). Reads that one topic only: for ground truth beside :func:`iter_images`.
+    """
+    track = PoseTrack()
+    for stamp, T in zip(*read_pose_messages(path, topic)):
+        track.add(int(stamp), T)
     tolerance_ns = int(round(tolerance_s * 1e9))
     poses = np.full((len(stamps_ns), 4, 4), np.nan)
     for row, stamp in enumerate(np.asarray(stamps_ns, dtype=np.int64).tolist()):
