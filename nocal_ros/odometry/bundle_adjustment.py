@@ -39,7 +39,8 @@ Conventions:
   calibration tangent is the plain difference of its parameter vector, so no Jacobian is needed;
   the skew row and column are dropped).
 * Pixels are native, distorted, with pixel centres at integer coordinates (OpenCV's convention).
-* The gauge: at least two keyframes are held fixed (monocular gauge and scale). Fixed poses and
+* The gauge: at least two keyframes are held fixed (monocular gauge and scale), or one and the
+  distance between two (``scale_pair``, a range factor), which leaves their relative rotation free. Fixed poses and
   pinned camera parameters are held by priors with sigmas of 1e-8 (a pose's residual stays below
   1e-8 m and rad; their covariances are returned as zeros; 1e-9 made the normal equations indeterminate).
 
@@ -85,6 +86,7 @@ CAMERA_MODES = {
     "fixed": (),
     "focal": (0, 1),
     "intrinsics": (0, 1, 2, 3),
+    "radial": (0, 1, 2, 3, 4, 5),  # plumb_bob without p1, p2 (equidistant: k1, k2)
     "full": tuple(range(8)),
 }
 SUPPORTED_MODELS = ("plumb_bob", "equidistant")
@@ -96,6 +98,10 @@ _PINNED_SIGMA = 1e-8
 # Sigma of "free" camera parameters in the pinning prior: no information at all, to double precision.
 _FREE_SIGMA = 1e8
 _LANDMARK_PRIOR_SCALE = 100.0
+# Relative sigma of the distance a scale_pair holds. Tighter (1e-6, 1e-8) made gtsam.Marginals report an
+# indeterminate system beside the 1e-8 pose prior (measured on VO windows); 1e-4 of the baseline is far
+# below what one window can tell about its scale.
+_SCALE_SIGMA = 1e-4
 
 
 class BundleAdjustmentError(NocalError):
@@ -165,6 +171,7 @@ class WindowProblem:
     relative_tolerance: float = 1e-5  # stop when the cost falls by less than this fraction
     robust_loss: str = "cauchy"  # "cauchy" | "huber" (measured: module notes)
     camera_covariance: bool = True  # False: skip the camera's marginal (saves its cost, BENCHMARKS.md)
+    scale_pair: tuple[int, int] | None = None  # keyframe rows whose distance is held: with one fixed pose, the gauge
 
 
 @dataclass
@@ -203,8 +210,15 @@ def _validate(problem: WindowProblem) -> tuple[np.ndarray, ...]:
     fixed = np.asarray(problem.fixed)
     if fixed.shape != (len(poses),) or fixed.dtype != bool:
         raise fail(f"fixed must be a ({len(poses)},) bool array, got {fixed.dtype} {fixed.shape}")
-    if fixed.sum() < 2:
-        raise fail(f"a monocular window needs at least two fixed poses (gauge and scale), got {int(fixed.sum())}")
+    if problem.scale_pair is not None:
+        i, j = (int(r) for r in problem.scale_pair)
+        if not (0 <= i < len(poses) and 0 <= j < len(poses)) or i == j:
+            raise fail(f"scale_pair must name two keyframe rows in 0..{len(poses) - 1}, got {problem.scale_pair}")
+        if np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]) <= 0:
+            raise fail("scale_pair names two keyframes at one position: no scale to hold")
+    if fixed.sum() < (1 if problem.scale_pair is not None else 2):
+        raise fail("a monocular window needs two fixed poses, or one and a scale_pair (gauge and scale), "
+                   f"got {int(fixed.sum())}")
     points = np.asarray(problem.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise fail(f"points must be (L, 3), got shape {points.shape}")
@@ -359,6 +373,10 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), pinned))
     for j, point in enumerate(points):
         values.insert(L(j), point)
+    if problem.scale_pair is not None:
+        i, j = (int(r) for r in problem.scale_pair)
+        distance = float(np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]))
+        graph.add(gtsam.RangeFactorPose3(X(i), X(j), distance, gtsam.noiseModel.Isotropic.Sigma(1, _SCALE_SIGMA * distance)))
 
     parameters = gtsam.LevenbergMarquardtParams.CeresDefaults()
     parameters.setMaxIterations(int(problem.max_iterations))
