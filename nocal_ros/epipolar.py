@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nocal_ros.two_view import detect_corners, gray_image, track_corners
+from nocal_ros.odometry.frontend import detect_corners, gray_image, track_corners
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ def arm_correspondences(
                 corners[k] = detect_corners(grays[k], max_corners)
         if corners[i] is None:
             continue
-        points_i, points_j = track_corners(grays[i], grays[j], corners[i])
+        points_i, points_j, _ = track_corners(grays[i], grays[j], corners[i])
         if len(points_i) == 0:
             continue
         T_ci_cj = np.linalg.inv(arm_poses[i]) @ arm_poses[j]

@@ -63,7 +63,7 @@ def frame(k: int, size=(64, 48)) -> np.ndarray:
 def make_estimator(T_w_c, nan_frames=(), T_base_cam=None, **kwargs) -> tuple[OdometryEstimator, TrajectoryPoses]:
     poses = TrajectoryPoses(T_w_c, set(nan_frames))
     model = PoseModel(predict_pose=poses, input_size=(32, 24), max_gap=8, model_id="trajectory")
-    return OdometryEstimator(model, T_base_cam=T_base_cam, **kwargs), poses
+    return OdometryEstimator(model, T_base_cam=T_base_cam, method="pose_head", **kwargs), poses
 
 
 def expected_T_odom_base(T_w_c, k0, k, T_base_cam):
@@ -216,7 +216,7 @@ def test_pose_covariance_matches_monte_carlo_propagation():
     std = {"translation_m": 0.02, "rotation_rad": 0.01}
     poses = TrajectoryPoses(T_w_c)
     model = PoseModel(predict_pose=poses, input_size=(32, 24), pose_error_std=std)
-    estimator = OdometryEstimator(model, T_base_cam=MOUNT)
+    estimator = OdometryEstimator(model, T_base_cam=MOUNT, method="pose_head")
     results = [estimator.process(START_NS + k * PERIOD_NS, frame(k)) for k in range(4)]
     covariance = results[-1].pose_covariance
     assert np.allclose(covariance, covariance.T) and np.linalg.eigvalsh(covariance).min() > 0
@@ -291,7 +291,8 @@ def test_real_pose_head_sees_the_resized_frames_in_order():
     network = NOCaL({"pose_scale": 300.0}).eval()  # a large output scale: poses far from the identity
     reference = NOCaL({"pose_scale": 300.0}).eval()
     reference.load_state_dict(network.state_dict())
-    estimator = OdometryEstimator(PoseModel(predict_pose=network.predict_pose, input_size=(40, 30), module=network))
+    estimator = OdometryEstimator(PoseModel(predict_pose=network.predict_pose, input_size=(40, 30), module=network),
+                                  method="pose_head")
     rng = np.random.default_rng(0)
     images = [cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (160, 120)) for _ in range(3)]
     results = [estimator.process(START_NS + k * PERIOD_NS, image) for k, image in enumerate(images)]

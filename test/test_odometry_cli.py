@@ -55,7 +55,7 @@ def sequence_bag(path: Path, n: int = 12, drop: tuple[int, ...] = ()) -> tuple[P
 
 def make_estimator(T_w_c, camera) -> OdometryEstimator:
     model = PoseModel(predict_pose=TrajectoryPoses(T_w_c), input_size=(32, 24), camera=camera, model_id="truth")
-    return OdometryEstimator(model)
+    return OdometryEstimator(model, method="pose_head")
 
 
 def read_topics(bag: Path) -> dict[str, list]:
@@ -197,7 +197,8 @@ def test_cli_runs_a_saved_checkpoint_end_to_end(tmp_path, capsys):
     bag, _, stamps = sequence_bag(tmp_path / "in", n=6)
     checkpoint = save_checkpoint(tmp_path / "model.safetensors", NOCaL(SMALL_MODEL), [CameraModel(WIDTH, HEIGHT)],
                                  metadata={"training_resolution": [40, 30]})
-    assert main(["odometry", str(bag), "--out", str(tmp_path / "out"), "--model", str(checkpoint), "--no-progress"]) == 0
+    assert main(["odometry", str(bag), "--out", str(tmp_path / "out"), "--model", str(checkpoint), "--method", "pose_head",
+                 "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "model.safetensors@" in printed and "6 frames -> 6 poses" in printed and "RPE" in printed
     rows = np.loadtxt(tmp_path / "out" / "trajectory.tum")
@@ -240,8 +241,11 @@ def test_demo_renders_an_unseen_camera_and_reports_errors(tmp_path, capsys):
     assert (foreign / "notes.txt").read_text() == "keep me"
 
 
-def test_a_camera_of_another_aspect_ratio_gets_odometry_but_no_camera_info(tmp_path, learnt_camera, caplog):
+def test_a_camera_of_another_aspect_ratio_gets_a_camera_info_of_its_own_shape(tmp_path, learnt_camera, caplog):
+    """The learnt camera (4:3) does not apply to 2:1 frames: the online camera starts from f = width at
+    the frames' own size, and every frame still gets a CameraInfo of that size."""
     from nocal_ros.commands.odometry import replay_bag
+    from nocal_ros.lens import CameraCalibration
 
     bag = tmp_path / "in"
     T_w_c = random_trajectory(3)
@@ -249,6 +253,8 @@ def test_a_camera_of_another_aspect_ratio_gets_odometry_but_no_camera_info(tmp_p
         for k in range(3):  # 80x40 (2:1) while the learnt camera is 80x60 (4:3)
             writer.write_image("/camera/image_raw", START_NS + k * PERIOD_NS, "cam", np.full((40, 80, 3), k, np.uint8))
     replay = replay_bag(bag, tmp_path / "out", make_estimator(T_w_c, learnt_camera), progress=False)
-    assert len(replay.stamps_ns) == 3 and "aspect ratio" in caplog.text
-    assert not (tmp_path / "out" / "calibration.yaml").exists()
-    assert "/camera_info" not in read_topics(tmp_path / "out" / "odometry")
+    assert len(replay.stamps_ns) == 3 and "another shape" in caplog.text
+    saved = CameraCalibration.load(tmp_path / "out" / "calibration.yaml")
+    assert (saved.width, saved.height) == (80, 40) and saved.fx == pytest.approx(80.0)
+    infos = read_topics(tmp_path / "out" / "odometry")["/camera_info"]
+    assert len(infos) == 3 and all((m.width, m.height) == (80, 40) for _, m in infos)

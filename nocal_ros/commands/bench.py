@@ -154,7 +154,7 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
     from nocal_ros.odometry import OdometryEstimator
 
     estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs,
-                                  channels_last=channels_last, two_view=frames is not None)
+                                  channels_last=channels_last, method="vo" if frames is not None else "pose_head")
     frames = frames if frames is not None else _frames(native, 16)
     messages = [_image_message(frame, 0) for frame in frames]
     period = 33_333_333
@@ -172,7 +172,7 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
     stats = _stats(ms)
     stats.update(precision=precision, cuda_graphs=bool(getattr(estimator._runner, "graphs", None)),
                  layout="channels_last" if channels_last else "contiguous",
-                 two_view_pairs=estimator.counters.two_view_pairs, pairs=estimator.counters.pairs)
+                 keyframes=estimator.counters.keyframes, pairs=estimator.counters.pairs)
     return stats, np.asarray(poses)
 
 

@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--frames", type=int, default=60, help="frames to render (10 per second)")
     parser.add_argument("--size", default="640x480", help="demo camera resolution WxH")
-    parser.add_argument("--no-two-view", action="store_true", help="pose head only (see nocal odometry --help)")
+    parser.add_argument("--method", default="vo", choices=("vo", "pose_head"), help="see nocal odometry --help")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         raise NocalError("--frames must be at least 3")
     start = time.perf_counter()
     # Load the model first: a missing or broken model fails before any rendering.
-    estimator = OdometryEstimator(args.model or None, args.device, two_view=not args.no_two_view)
+    estimator = OdometryEstimator(args.model or None, args.device, method=args.method, synchronous_mapping=True)
     out = Path(args.out)
     _prepare(out)
 

@@ -50,9 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="static pose of the camera optical frame in the base frame (default: identity)",
     )
     parser.add_argument("--frame-period", type=float, default=None, help="camera frame period in s (default: from stamps)")
-    parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "rational_polynomial"))
-    parser.add_argument("--no-two-view", action="store_true",
-                        help="pose head only: no rotation and direction from tracked corners through the learnt camera")
+    parser.add_argument("--method", default="vo", choices=("vo", "pose_head"),
+                        help="vo: keyframe visual odometry calibrating the camera online (default); pose_head: the "
+                             "NOCaL pose head alone, pair by pair")
+    parser.add_argument("--calibration", type=Path, default=None,
+                        help="camera_calibration YAML to start the online camera from (default: the model's learnt camera)")
+    parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "equidistant"),
+                        help="the online camera's lens model (auto: plumb_bob)")
+    parser.add_argument("--arm-topic", default="/arm/pose",
+                        help="arm poses of the camera (PoseStamped) that make the scale metric, when the bag has them; '' to ignore")
     parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
@@ -71,14 +77,20 @@ def run(args: argparse.Namespace) -> int:
     if args.base_to_camera:
         x, y, z, qx, qy, qz, qw = args.base_to_camera
         T_base_cam = make_transform(quaternion_to_matrix(np.array([qx, qy, qz, qw])), np.array([x, y, z]))
+    calibration = None
+    if args.calibration is not None:
+        from nocal_ros.lens import CameraCalibration
+
+        calibration = CameraCalibration.load(args.calibration)
     estimator = OdometryEstimator(
         args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
-        distortion_model=args.distortion_model, two_view=not args.no_two_view,
+        distortion_model=args.distortion_model, method=args.method, calibration=calibration,
+        synchronous_mapping=True,
     )
     result = replay_bag(
         args.bag, args.out, estimator,
         image_topic=args.image_topic, gt_topic=args.gt_topic, camera_info_topic=args.camera_info_topic,
-        odom_frame=args.odom_frame, base_frame=args.base_frame or None, storage=args.storage,
+        odom_frame=args.odom_frame, base_frame=args.base_frame or None, storage=args.storage, arm_topic=args.arm_topic or None,
         max_frames=args.max_frames, overwrite=args.overwrite, progress=not args.no_progress,
     )
     print(result.summary())
@@ -165,6 +177,17 @@ def _frames(bag: Path, image_topic: str, max_frames: int | None, progress: bool)
         yield item
 
 
+def _arm_poses(bag: Path, arm_topic: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """The bag's arm poses of the camera, ``(stamps, poses)`` sorted by stamp; empty without the topic."""
+    from nocal_ros.data.bags import bag_topics, read_pose_messages
+
+    if not arm_topic or arm_topic not in bag_topics(bag):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
+    stamps, poses = read_pose_messages(bag, arm_topic)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], poses[order]
+
+
 def replay_bag(
     bag: str | Path,
     out_dir: str | Path,
@@ -173,6 +196,7 @@ def replay_bag(
     image_topic: str = "/camera/image_raw",
     gt_topic: str | None = "/ground_truth/pose",
     camera_info_topic: str | None = "/ground_truth/camera_info",
+    arm_topic: str | None = "/arm/pose",
     odom_frame: str = "odom",
     base_frame: str | None = None,
     storage: str = "mcap",
@@ -181,20 +205,25 @@ def replay_bag(
     progress: bool = True,
     plot: bool = True,
 ) -> ReplayResult:
-    """Run ``estimator`` over a bag's images and write the outputs (see the module notes)."""
+    """Run ``estimator`` over a bag's images and write the outputs (see the module notes).
+
+    Arm poses on ``arm_topic`` are handed to the estimator in stamp order, each before the first image
+    at or after its stamp (as they would arrive live), to make the odometry's scale metric.
+    """
     from nocal_ros.data.bags import BagWriter
-    from nocal_ros.odometry import FrameError, FrameSizeError
+    from nocal_ros.odometry import FrameError
 
     bag, out_dir = Path(bag), Path(out_dir)
     if not bag.exists():
         raise BagError(f"{bag}: no such bag (file or directory does not exist)")
     _check_outputs(out_dir, overwrite)
     outputs = {"odometry": out_dir / "odometry", "trajectory.tum": out_dir / "trajectory.tum"}
+    arm_stamps, arm_poses = _arm_poses(bag, arm_topic)
+    next_arm = 0
     stamps: list[int] = []
     poses_base: list[np.ndarray] = []
     poses_cam: list[np.ndarray] = []
-    calibration = residual = None
-    camera_known = estimator.model.camera is not None
+    tracking: list[str] = []
     frames_in = 0
     start = time.perf_counter()
     with BagWriter(outputs["odometry"], storage=storage, overwrite=overwrite) as writer:
@@ -203,19 +232,16 @@ def replay_bag(
         writer.declare_topic("/camera_info", "sensor_msgs/msg/CameraInfo")
         for stamp_ns, frame_id, image in _frames(bag, image_topic, max_frames, progress):
             frames_in += 1
+            while next_arm < len(arm_stamps) and arm_stamps[next_arm] <= stamp_ns:
+                estimator.add_arm_pose(int(arm_stamps[next_arm]), arm_poses[next_arm])
+                next_arm += 1
             try:
                 result = estimator.process(stamp_ns, image)
             except FrameError as error:
                 raise BagError(f"{bag}: {image_topic} frame {frames_in - 1}: {error}") from None
             camera_frame = frame_id or "camera_optical"
-            if calibration is None and camera_known:
-                try:
-                    calibration, residual = estimator.camera_info(image.shape[1], image.shape[0])
-                except FrameSizeError as error:  # the model's camera has another aspect ratio
-                    log.warning("no camera_info: %s", error)
-                    camera_known = False
-            if calibration is not None:
-                writer.write_camera_info("/camera_info", stamp_ns, camera_frame, calibration)
+            calibration, _ = estimator.camera_info(image.shape[1], image.shape[0])
+            writer.write_camera_info("/camera_info", stamp_ns, camera_frame, calibration)
             if result is None:
                 continue
             child = base_frame or camera_frame
@@ -227,19 +253,21 @@ def replay_bag(
             stamps.append(stamp_ns)
             poses_base.append(result.T_odom_base)
             poses_cam.append(result.T_odom_cam)
+            tracking.append(result.tracking)
     seconds = time.perf_counter() - start
     stamps_ns = np.asarray(stamps, dtype=np.int64)
     write_tum(outputs["trajectory.tum"], stamps_ns, np.asarray(poses_base).reshape(-1, 4, 4))
-    if calibration is not None:
+    calibration = residual = None
+    if frames_in:
+        calibration, residual = estimator.camera_info()
         outputs["calibration.yaml"] = out_dir / "calibration.yaml"
         calibration.save(outputs["calibration.yaml"])
-    elif estimator.model.camera is None:
-        log.warning("model %s has no learnt camera: no camera_info or calibration.yaml", estimator.model_id)
 
     replay = ReplayResult(
         out_dir=out_dir, outputs=outputs, stamps_ns=stamps_ns, T_odom_cam=np.asarray(poses_cam).reshape(-1, 4, 4),
         frames_in=frames_in, counters=dict(vars(estimator.counters)), model_id=estimator.model_id,
         calibration_residual_px=residual, seconds=seconds,
+        extras={"tracking": tracking, "calibration": calibration, "calibration_status": estimator.calibration_status()},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
@@ -313,12 +341,16 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     }
     if len(stamps) >= 2:
         report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
-    camera = estimator.model.camera
-    if truth.calibration is not None and camera is not None:
-        report["calibration"] = evaluation.calibration_errors(camera, truth.calibration)
-        if replay.calibration_residual_px is not None:
-            report["calibration"]["fit_residual_px"] = float(replay.calibration_residual_px)
-            report["calibration"]["distortion_model"] = calibration.distortion_model
+    report["method"] = getattr(estimator, "method", "vo")
+    tracking = replay.extras.get("tracking") or []
+    if tracking:
+        report["tracking"] = {state: int(sum(t == state for t in tracking)) for state in ("initialising", "ok", "lost")}
+    if replay.extras.get("calibration_status"):
+        report["calibration_status"] = replay.extras["calibration_status"]
+    if truth.calibration is not None and calibration is not None:
+        report["calibration"] = evaluation.calibration_errors(calibration, truth.calibration)
+        report["calibration"]["fit_residual_px"] = float(replay.calibration_residual_px or 0.0)
+        report["calibration"]["distortion_model"] = calibration.distortion_model
     return report
 
 

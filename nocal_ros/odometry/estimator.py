@@ -1,10 +1,17 @@
 """OdometryEstimator: camera frames in, integrated poses, twist and covariances out. No ROS here.
 
 The odometry node, ``nocal odometry`` and ``nocal demo`` all feed frames to this one class, so every
-rule about dropped frames, time jumps and bad network output lives in one place.
+rule about dropped frames, time jumps, lost tracking and bad network output lives in one place.
+
+Methods (``method=``)
+    ``"vo"`` (the default): keyframe visual odometry through the online camera
+    (:mod:`nocal_ros.odometry.tracking`, :mod:`~nocal_ros.odometry.local_mapping`): persistent tracks,
+    PnP against a local map, windowed bundle adjustment over keyframes, landmarks and the camera in a
+    worker thread, metric scale from arm poses or the NOCaL pose head (:mod:`~nocal_ros.odometry.scale`).
+    The pose head also bridges frames where geometry fails (``tracking="lost"``).
+    ``"pose_head"``: the NOCaL pose head alone, integrated pair by pair (the paper's odometry).
 
 Frames and poses
-    The pose head predicts ``T_ci_cj`` (pose of the current camera in the previous camera's frame).
     Odometry is published for ``base_frame`` (REP 105), which is rigidly attached to the camera by the
     static ``T_base_cam``. The ``odom`` frame is the base frame's pose at the first frame, so::
 
@@ -12,7 +19,18 @@ Frames and poses
         T_bi_bj        = T_base_cam @ T_ci_cj  @ inv(T_base_cam)      (one pair, base frame)
         T_odom_base_j  = T_odom_base_i @ T_bi_bj
 
-    With ``T_base_cam = I`` (the default) the base frame is the camera optical frame.
+    With ``T_base_cam = I`` (the default) the base frame is the camera optical frame. A VO map is
+    anchored in ``odom`` at the camera pose published for its first keyframe; its poses are scaled to
+    metres by the current scale estimate. When the estimate changes, the anchor moves so that the pose
+    published at that moment does not jump: a new scale applies to the motion from then on.
+
+States (``OdometryResult.tracking``)
+    ``"initialising"``: no map yet (a still camera never leaves this state). The rotation is measured
+    from the tracks; no translation is reported (monocular geometry sees none without parallax).
+    ``"ok"``: posed by the VO. ``"lost"``: geometry failed (too few tracks or PnP inliers, or a frame
+    with no texture at all). The motion is the pose head's when the frame has texture, else none, and
+    the covariance is inflated by :data:`LOST_STD` per frame so that no consumer trusts the pose; a new
+    map is initialised from the next frames and continues from the pose reached.
 
 Twist
     ``nav_msgs/Odometry`` gives the twist in the child (base) frame. For the pair ``i -> j`` over
@@ -21,15 +39,14 @@ Twist
 
 Covariance (how it is derived)
     Each pair's error is modelled as a right perturbation ``T_bi_bj Exp(xi)``, ``xi = (rho, theta)``,
-    zero-mean Gaussian. In the camera frame ``xi`` is isotropic with per-frame standard deviations
-    ``sigma_t`` (m) and ``sigma_r`` (rad); a gap of ``g`` frames used as one pair gets ``g`` times the
-    variance (the motion, and so the error, of a ``g``-frame pair is about ``g`` single-frame pairs).
-    The values come from the checkpoint's metadata ``pose_error_std`` (``{"translation_m": ...,
-    "rotation_rad": ...}``, the spread of the pose head's error per frame on labelled validation pairs,
-    written by training) when present, else :data:`DEFAULT_POSE_ERROR_STD`. The camera-frame
-    covariance is moved to the base frame by the adjoint of ``T_base_cam``. The pose covariance, in
-    ROS order ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s
-    axes, is propagated to first order::
+    zero-mean Gaussian, moved to the base frame by the adjoint of ``T_base_cam``. Its covariance is:
+    for a VO frame, the PnP pose's covariance from the inliers' reprojection information (the
+    information of a motion-only bundle adjustment against the map), with the translation scaled to
+    metres; while initialising and for the pose head, the spread of the pose head's error per frame
+    recorded by training (``pose_error_std`` in the checkpoint, else :data:`DEFAULT_POSE_ERROR_STD`),
+    times the gap ``g`` in frames; when lost, :data:`LOST_STD`. The pose covariance, in ROS order
+    ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s axes, is
+    propagated to first order::
 
         Sigma_j = A Sigma_i A^T + B Sigma_xi B^T,
         A = [[I, -[R_i t_ij]x], [0, I]],   B = [[R_j, 0], [0, R_j]]
@@ -37,27 +54,17 @@ Covariance (how it is derived)
     The twist covariance is ``Sigma_xi / dt^2``. A frame with no motion estimate (the first frame, or
     one after a reset) reports a twist covariance of :data:`UNKNOWN_VARIANCE`, ROS's "unknown".
 
-Two-view geometry (on by default: ``two_view=True``)
-    On cameras it never saw, the pose head's rotation is no better than reporting no motion
-    (docs/RESULTS.md), while the learnt camera is good enough for classical geometry. So, when the model
-    carries a camera, each pair is also measured by :mod:`nocal_ros.two_view`: corners tracked from the
-    previous frame, turned into rays by the learnt camera (intrinsics and distortion MLP), and an
-    essential matrix (or a pure rotation when the parallax is below a pixel). Its rotation replaces the
-    pose head's; its direction of travel, scaled to the length of the pose head's translation, replaces
-    the translation (monocular geometry has no scale). A pair where no geometric model explains at least
-    half of the tracks keeps the pose head's estimate (``OdometryResult.motion_source`` says which).
-    The covariance still uses the pose head's recorded error, an upper bound for the rotation.
-
 Dropped frames and resets
     The frame period is the smallest stamp step seen recently (drops only lengthen steps). A step of
-    ``g = round(dt / period)`` frames with ``g <= max_gap`` (the largest gap training used) is run as one
-    pair; a longer one starts a new pair chain from the current frame with a warning, keeping the pose
-    (the motion across the gap is lost: ``status="gap_reset"``). Time going backwards resets everything
-    (pose to identity, ``status="time_reset"``), as ROS does on a clock jump; a repeated stamp is
-    skipped. A change of image encoding starts a new chain (a pair across encodings would be
-    meaningless). A change of image size raises :class:`FrameSizeError`, leaving the state untouched,
-    until :meth:`OdometryEstimator.reset` accepts the new size. A non-finite network output skips the
-    frame (counted); the next frame pairs with the last good one.
+    ``g = round(dt / period)`` frames is one pair. The pose head cannot pair frames more than ``max_gap``
+    (the largest gap training used) apart: in ``"pose_head"`` mode a longer step starts a new pair chain
+    from the current frame with a warning, keeping the pose (``status="gap_reset"``); the VO tracks
+    across it or, failing that, re-initialises. Time going backwards resets everything (pose to identity,
+    ``status="time_reset"``), as ROS does on a clock jump; a repeated stamp is skipped. A change of image
+    encoding starts a new pose head chain (a pair across encodings would be meaningless). A change of
+    image size raises :class:`FrameSizeError`, leaving the state untouched, until
+    :meth:`OdometryEstimator.reset` accepts the new size. A non-finite network output skips the frame in
+    ``"pose_head"`` mode (counted); the next frame pairs with the last good one.
 """
 
 from __future__ import annotations
@@ -65,26 +72,37 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 import torch
 
 from nocal_ros.errors import NocalError
 from nocal_ros.geometry import invert_transform, nearest_rotation, so3_log
+from nocal_ros.odometry.calibration import OnlineCamera, calibration_from_learnt_camera, prior_calibration
 from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
+from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale
+from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFrame
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
-    from nocal_ros.two_view import TwoViewTracker
 
 log = logging.getLogger(__name__)
 
 #: How many recent stamp steps the frame period is estimated from.
 PERIOD_HISTORY = 32
+#: Per-frame standard deviation of a lost frame's motion: 1 m and 0.5 rad, so nobody trusts it.
+LOST_STD = {"translation_m": 1.0, "rotation_rad": 0.5}
+#: Published poses kept per frame, for anchoring a new map at its first keyframe.
+POSE_HISTORY = 256
+#: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
+ARM_HISTORY = 10000
+ARM_TOLERANCE_NS = 20_000_000
+METHODS = ("vo", "pose_head")
 
 
 class FrameError(NocalError):
@@ -116,8 +134,13 @@ class OdometryResult:
             started for that reason.
         gap: frames spanned by the pair (0 when no pair was run).
         inference_ms: time spent in the pose head for this frame.
-        motion_source: where the pair's motion came from: ``"pose_head"``, or ``"essential"`` /
-            ``"rotation"`` when two-view geometry gave the rotation (see the module notes).
+        motion_source: where the pair's motion came from: ``"vo"``; while there is no map
+            ``"two_view"`` (the essential matrix's rotation and direction, the pose head's length) or
+            ``"rotation"`` (a rotation explains the tracks: no translation); ``"pose_head"`` or
+            ``"none"`` (held still) when lost.
+        tracking: ``"initialising"``, ``"ok"`` or ``"lost"`` (see the module notes).
+        scale_source: what made the translation metric: ``"arm"``, ``"pose_head"`` or ``"none"``.
+        keyframe: the frame became a VO keyframe.
     """
 
     stamp_ns: int
@@ -131,6 +154,9 @@ class OdometryResult:
     gap: int
     inference_ms: float = 0.0
     motion_source: str = "pose_head"
+    tracking: str = "ok"
+    scale_source: str = "pose_head"
+    keyframe: bool = False
 
 
 @dataclass
@@ -138,7 +164,7 @@ class OdometryCounters:
     """What happened to the frames so far (for diagnostics and reports)."""
 
     frames: int = 0  # frames given to process()
-    pairs: int = 0  # pose head outputs integrated
+    pairs: int = 0  # motions integrated
     bridged_gaps: int = 0  # pairs spanning more than one frame period
     gap_resets: int = 0
     time_resets: int = 0
@@ -146,7 +172,11 @@ class OdometryCounters:
     nonfinite_skipped: int = 0
     duplicate_stamps: int = 0
     size_rejected: int = 0
-    two_view_pairs: int = 0  # pairs whose rotation came from two-view geometry
+    keyframes: int = 0
+    maps: int = 0  # VO maps initialised (more than one: re-initialised after losing track)
+    initialising_frames: int = 0
+    lost_frames: int = 0
+    pose_head_fallbacks: int = 0  # lost frames bridged by the pose head
 
 
 # --------------------------------------------------------------------------------------------------
@@ -155,7 +185,7 @@ class OdometryCounters:
 
 
 class OdometryEstimator:
-    """Integrates the pose head over a stream of frames.
+    """Odometry over a stream of frames (see the module notes).
 
     Args:
         checkpoint: a checkpoint path, a model store directory, a loaded ``Checkpoint``, a
@@ -163,13 +193,17 @@ class OdometryEstimator:
         device: ``"auto"``, ``"cpu"``, ``"cuda"``... (ignored for a :class:`PoseModel`).
         T_base_cam: static ``(4, 4)`` pose of the camera optical frame in the base frame.
         frame_period_s: the camera's frame period; None estimates it from the stamps.
-        distortion_model: for :meth:`camera_info`: ``"auto"`` (plumb_bob unless rational_polynomial fits
-            clearly better), ``"plumb_bob"`` or ``"rational_polynomial"``.
+        distortion_model: the online camera's lens model: ``"plumb_bob"`` (``"auto"``: the same) or
+            ``"equidistant"`` (fisheye).
         precision: ``"fp32"``, or ``"fp16"`` / ``"bf16"`` autocast on CUDA.
         cuda_graphs: capture the pose head in CUDA graphs on CUDA (falls back to eager if capture fails).
         channels_last: run the convolutions in channels-last layout (faster on CPU; see BENCHMARKS.md).
-        two_view: measure each pair's rotation and direction of travel by two-view geometry through the
-            model's learnt camera (see the module notes); ignored for a model without a camera.
+        method: ``"vo"`` or ``"pose_head"`` (see the module notes).
+        calibration: a ``CameraCalibration`` to start the online camera from (else the model's learnt
+            camera, else ``f = width``).
+        synchronous_mapping: run local mapping before :meth:`process` returns (replays that must repeat
+            exactly) instead of in its worker thread.
+        settings: VO thresholds (:class:`~nocal_ros.odometry.tracking.TrackingSettings`).
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -185,20 +219,38 @@ class OdometryEstimator:
         precision: str = "fp32",
         cuda_graphs: bool = True,
         channels_last: bool = True,
-        two_view: bool = True,
+        method: str = "vo",
+        calibration: "CameraCalibration | None" = None,
+        synchronous_mapping: bool = False,
+        settings: TrackingSettings | None = None,
     ) -> None:
+        if method not in METHODS:
+            raise NocalError(f"odometry method must be one of {', '.join(METHODS)}, got {method!r}")
+        if distortion_model not in ("auto", "plumb_bob", "equidistant"):
+            raise NocalError(f"the online camera is plumb_bob or equidistant, got {distortion_model!r}")
         self._lock = threading.RLock()
-        self.two_view = bool(two_view)
+        # OpenCV's RANSACs draw from one generator per thread: with its thread pool, a replay did not
+        # repeat (the calibration of one held-out bag ended 0.7 % or 30 % off from run to run), and on
+        # small per-frame problems the pool is slower anyway (LK tracking 13.6 vs 22 ms at 640x480 on a
+        # busy 2-core machine). Process-wide, as OpenCV's setting is.
+        cv2.setNumThreads(1)
+        self.method = method
         self.channels_last = channels_last
         self.device_request = device
         self.frame_period_s = frame_period_s
-        self.distortion_model = distortion_model
+        self.distortion_model = "plumb_bob" if distortion_model == "auto" else distortion_model
         self.precision = precision
         self.cuda_graphs = cuda_graphs
+        self.synchronous_mapping = bool(synchronous_mapping)
+        self.settings = settings or TrackingSettings()
         self.counters = OdometryCounters()
         self._T_base_cam = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
         self._T_cam_base = invert_transform(self._T_base_cam)
-        self._calibration_cache: dict[tuple[int, int], tuple["CameraCalibration", float]] = {}
+        self._given_calibration = calibration
+        self._camera: OnlineCamera | None = None
+        self._vo: VisualOdometry | None = None
+        self._arm_stamps: deque[int] = deque(maxlen=ARM_HISTORY)
+        self._arm_poses: deque[np.ndarray] = deque(maxlen=ARM_HISTORY)
         self.model: PoseModel
         self._runner: PoseRunner
         self._load(checkpoint)
@@ -208,31 +260,27 @@ class OdometryEstimator:
 
     def _load(self, checkpoint: Any) -> None:
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
-        runner = PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
-        self.model, self._runner, self._tracker = model, runner, self._make_tracker(model)
-        self._calibration_cache.clear()
+        self.model, self._runner = model, self._make_runner(model)
 
-    def _make_tracker(self, model: PoseModel) -> "TwoViewTracker | None":
-        if not self.two_view or model.camera is None:
-            return None
-        from nocal_ros.two_view import TwoViewTracker
-
-        return TwoViewTracker(model.camera)
+    def _make_runner(self, model: PoseModel) -> PoseRunner:
+        return PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last, history=model.max_gap + 1)
 
     def reload(self, checkpoint: Any = None) -> str:
         """Swap in another model without losing the pose; returns the new model's id.
 
         The new model is loaded before the old one is dropped, so a bad file raises (CheckpointError)
-        and leaves the running model in place. The pair chain restarts from the next frame because
-        the previous frame was preprocessed for the old model.
+        and leaves the running model in place. The pose head's pair chain restarts from the next frame
+        (the previous frame was preprocessed for the old model). The online camera is kept unless it
+        is still the prior, in which case the new model's learnt camera replaces it.
         """
         model = checkpoint if isinstance(checkpoint, PoseModel) else PoseModel.from_checkpoint(checkpoint, self.device_request)
-        runner = PoseRunner(model, self.precision, self.cuda_graphs, self.channels_last)
-        tracker = self._make_tracker(model)
+        runner = self._make_runner(model)
         with self._lock:
-            self.model, self._runner, self._tracker = model, runner, tracker
-            self._calibration_cache.clear()
+            self.model, self._runner = model, runner
             self._has_previous = False
+            if self._camera is not None and self._camera.state() == "prior" and self._given_calibration is None:
+                self._camera = None  # rebuilt from the new model at the next frame
+                self._close_vo()
         log.info("odometry: loaded model %s", model.model_id)
         return model.model_id
 
@@ -262,15 +310,35 @@ class OdometryEstimator:
     # -- state -------------------------------------------------------------------------------------
 
     def reset(self) -> None:
-        """Forget everything but the model: pose to identity, no previous frame, any image size."""
+        """Forget the motion: pose to identity, no previous frame, any image size. The camera is kept
+        for frames of the same size (it is the same camera)."""
         with self._lock:
             self._T_odom_base = np.eye(4)
             self._pose_cov = np.zeros((6, 6))
             self._has_previous = False
             self._previous_stamp: int | None = None
+            self._previous_key: int | None = None
             self._image_shape: tuple[int, int] | None = None
             self._encoding: str | None = None
             self._steps: deque[int] = deque(maxlen=PERIOD_HISTORY)
+            self._frame = 0
+            self._published: OrderedDict[int, np.ndarray] = OrderedDict()  # frame -> T_odom_cam
+            self._frame_stamps: OrderedDict[int, int] = OrderedDict()
+            self._anchor: np.ndarray | None = None  # T_odom_map of the current map
+            self._anchor_map_id = -1
+            self._scale = ScaleEstimate()
+            if self._vo is not None:
+                self._vo.reset()
+
+    def _close_vo(self) -> None:
+        if self._vo is not None:
+            self._vo.close()
+            self._vo = None
+
+    def close(self) -> None:
+        """Stop the mapping thread (the estimator can still be used; it starts again when needed)."""
+        with self._lock:
+            self._close_vo()
 
     @property
     def image_size(self) -> tuple[int, int] | None:
@@ -281,6 +349,101 @@ class OdometryEstimator:
         if self.frame_period_s:
             return int(round(self.frame_period_s * 1e9))
         return min(self._steps) if self._steps else None
+
+    # -- calibration -------------------------------------------------------------------------------
+
+    def _online_camera(self, width: int, height: int) -> OnlineCamera:
+        """The online camera for ``width x height`` frames, made on first use (see the module notes)."""
+        camera = self._camera
+        if camera is not None and (camera.calibration.width, camera.calibration.height) == (width, height):
+            return camera
+        self._close_vo()
+        calibration, source, residual = self._starting_calibration(width, height)
+        self._camera = OnlineCamera(calibration, source, residual)
+        return self._camera
+
+    def _starting_calibration(self, width: int, height: int) -> tuple["CameraCalibration", str, float]:
+        given = self._given_calibration
+        if given is not None:
+            return _resized(given, width, height, "the given calibration"), "file", 0.0
+        learnt = self.model.camera
+        if learnt is not None and self.distortion_model == "plumb_bob":
+            if abs(learnt.width / learnt.height - width / height) < 1e-3:
+                calibration, residual = calibration_from_learnt_camera(learnt)
+                return calibration.scaled(width, height), "model", residual * width / learnt.width
+            log.warning("odometry: the model's camera is %dx%d, the images %dx%d (another shape): starting from f = width",
+                        learnt.width, learnt.height, width, height)
+        return prior_calibration(width, height, self.distortion_model), "prior", 0.0
+
+    def set_calibration(self, calibration: "CameraCalibration") -> None:
+        """Restart the online camera from ``calibration`` (scaled to the frames' size); the pose is kept."""
+        from nocal_ros.odometry.calibration import as_vo_calibration
+
+        try:
+            calibration = as_vo_calibration(calibration)
+        except ValueError as error:
+            raise NocalError(str(error)) from None
+        with self._lock:
+            self._given_calibration = calibration
+            size = self.image_size
+            if size is not None:
+                self._close_vo()
+                self._camera = OnlineCamera(_resized(calibration, *size, "the given calibration"), "file", 0.0)
+            else:
+                self._camera = None
+
+    def camera_info(self, width: int | None = None, height: int | None = None) -> tuple["CameraCalibration", float]:
+        """The current online camera and the residual of the conversion it started from (pixels).
+
+        At ``width x height`` (default: the size of the frames seen, else the model camera's native size);
+        a size of another aspect ratio than the frames seen raises :class:`FrameSizeError`.
+        """
+        with self._lock:
+            size = self.image_size
+            if size is None:
+                if width and height:
+                    size = (int(width), int(height))
+                elif self.model.camera is not None:
+                    size = (int(self.model.camera.width), int(self.model.camera.height))
+                elif self._given_calibration is not None:
+                    size = (self._given_calibration.width, self._given_calibration.height)
+                else:
+                    raise NocalError(f"model {self.model.model_id} has no camera yet: no frame seen and none given")
+            camera = self._online_camera(*size)
+            calibration, residual = camera.calibration, camera.residual_px
+        if width and height and (int(width), int(height)) != (calibration.width, calibration.height):
+            calibration = _resized(calibration, int(width), int(height), "the camera")
+            residual *= int(width) / size[0]
+        return calibration, residual
+
+    def calibration_status(self) -> dict:
+        """``{"state": "prior"|"converging"|"converged", "source", "focal_std_px", "keyframes", ...}``."""
+        with self._lock:
+            camera = self._camera
+            if camera is None:
+                return {"state": "prior", "source": "file" if self._given_calibration is not None else "model",
+                        "focal_std_px": None, "keyframes": 0, "updates": 0, "fit_residual_px": None}
+            status = camera.status()
+            status["keyframes"] = self.counters.keyframes
+            return status
+
+    def add_arm_pose(self, stamp_ns: int, T_base_cam: np.ndarray) -> None:
+        """The camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied)."""
+        T = np.asarray(T_base_cam, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"an arm pose must be a finite 4x4 transform, got {T.shape}")
+        with self._lock:
+            self._arm_stamps.append(int(stamp_ns))
+            self._arm_poses.append(T.copy())
+
+    def _arm_position(self, stamp_ns: int) -> np.ndarray | None:
+        if not self._arm_stamps:
+            return None
+        stamps = np.fromiter(self._arm_stamps, dtype=np.int64)
+        nearest = int(np.argmin(np.abs(stamps - stamp_ns)))
+        if abs(int(stamps[nearest]) - stamp_ns) > ARM_TOLERANCE_NS:
+            return None
+        return self._arm_poses[nearest][:3, 3]
 
     # -- the per-frame path ------------------------------------------------------------------------
 
@@ -314,8 +477,10 @@ class OdometryEstimator:
             if encoding is not None and self._encoding is not None and encoding != self._encoding:
                 log.warning("odometry: image encoding changed %s -> %s: new pair chain", self._encoding, encoding)
                 self.counters.encoding_resets += 1
-                self._has_previous = False
-                status = "encoding_reset"
+                self._previous_key = None
+                if self.method == "pose_head":
+                    self._has_previous = False
+                    status = "encoding_reset"
             if encoding is not None:
                 self._encoding = encoding
 
@@ -330,38 +495,180 @@ class OdometryEstimator:
                 period = self.frame_period_ns() or step
                 gap = max(1, int(round(step / period)))
                 if gap > self.model.max_gap:
-                    log.warning(
-                        "odometry: %.3f s without frames (%d frames > trained gap %d): new pair chain",
-                        step * 1e-9, gap, self.model.max_gap,
-                    )
-                    self.counters.gap_resets += 1
-                    self._has_previous = False
-                    status = "gap_reset"
-                    gap = 0
+                    self._previous_key = None  # the pose head cannot pair across it
+                    if self.method == "pose_head":
+                        log.warning("odometry: %.3f s without frames (%d frames > trained gap %d): new pair chain",
+                                    step * 1e-9, gap, self.model.max_gap)
+                        self.counters.gap_resets += 1
+                        self._has_previous = False
+                        status = "gap_reset"
+                        gap = 0
 
-            slot = self._runner.load_frame(image)
-            tracker = self._tracker
-            if not self._has_previous:
-                if tracker is not None:
-                    tracker.reset()
-                    tracker.update(image)  # the chain's first frame becomes the tracker's reference
-                return self._start_chain(stamp_ns, "start" if status == "ok" else status)
+            key = self._runner.load_frame(image)
+            if self.method == "pose_head":
+                return self._process_pose_head(stamp_ns, key, gap, status)
+            return self._process_vo(stamp_ns, image, key, gap, status)
 
-            start = time.perf_counter()
-            T_ci_cj = self._runner.run()
-            inference_ms = (time.perf_counter() - start) * 1e3
-            if not np.isfinite(T_ci_cj).all():
-                self.counters.nonfinite_skipped += 1
-                self._runner.discard(slot)  # the tracker has not seen this frame, so it pairs the next one alike
-                log.warning("odometry: non-finite pose head output at stamp %d: frame skipped", stamp_ns)
-                return None
-            source = "pose_head"
-            motion = tracker.update(image) if tracker is not None else None
-            if motion is not None:
-                T_ci_cj = combine_motion(T_ci_cj, motion.rotation, motion.direction)
-                source = motion.model
-                self.counters.two_view_pairs += 1
-            return self._integrate(stamp_ns, T_ci_cj, gap, inference_ms, status, source)
+    # -- pose head alone ---------------------------------------------------------------------------
+
+    def _process_pose_head(self, stamp_ns: int, key: int, gap: int, status: str) -> OdometryResult | None:
+        if not self._has_previous or self._previous_key is None:
+            self._previous_key = key
+            return self._start_chain(stamp_ns, "start" if status == "ok" else status)
+        start = time.perf_counter()
+        T_ci_cj = self._runner.run(self._previous_key, key)
+        inference_ms = (time.perf_counter() - start) * 1e3
+        if not np.isfinite(T_ci_cj).all():
+            self.counters.nonfinite_skipped += 1
+            log.warning("odometry: non-finite pose head output at stamp %d: frame skipped", stamp_ns)
+            return None  # the previous key stays: the next frame pairs with the last good one
+        self._previous_key = key
+        sigma = self._pose_head_sigma(gap)
+        return self._integrate(stamp_ns, T_ci_cj, gap, inference_ms, status, "pose_head", sigma)
+
+    def _pose_head_sigma(self, gap: int, std: dict | None = None) -> np.ndarray:
+        """Camera-frame ``(6, 6)`` pair covariance from per-frame standard deviations, times the gap."""
+        std = std or self.model.pose_error_std
+        g = max(int(gap), 1)
+        return np.diag([std["translation_m"] ** 2 * g] * 3 + [std["rotation_rad"] ** 2 * g] * 3)
+
+    # -- visual odometry ---------------------------------------------------------------------------
+
+    def _process_vo(self, stamp_ns: int, image: np.ndarray, key: int, gap: int, status: str) -> OdometryResult:
+        height, width = image.shape[:2]
+        camera = self._online_camera(width, height)
+        if self._vo is None:
+            self._vo = VisualOdometry(camera, self.settings, self.synchronous_mapping)
+        frame = self._frame
+        self._frame += 1
+        self._frame_stamps[frame] = stamp_ns
+        _trim(self._frame_stamps)
+        vo_frame = self._vo.process(frame, stamp_ns, image)
+        previous_key, self._previous_key = self._previous_key, key
+        if vo_frame.keyframe:
+            self.counters.keyframes += 1
+        if vo_frame.new_map:
+            self.counters.maps += 1
+
+        if not self._has_previous:
+            self._has_previous = True
+            self._previous_stamp = stamp_ns
+            T = self._T_odom_base @ self._T_base_cam
+            self._remember(frame, T)
+            unknown = np.eye(6) * UNKNOWN_VARIANCE
+            return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, "start" if status == "ok" else status, 0,
+                                0.0, "none", vo_frame.state, keyframe=vo_frame.keyframe)
+
+        T_prev = self._T_odom_base @ self._T_base_cam
+        inference_ms = 0.0
+        if vo_frame.state == "ok":
+            if vo_frame.new_map or self._anchor_map_id != vo_frame.map_id:
+                self._start_map(vo_frame, frame, key)
+            self._update_scale(vo_frame)
+            if vo_frame.T_prev_cur is None:
+                T_new = self._anchor @ self._metric_pose(vo_frame.T_map_cam)
+            else:
+                T_new = T_prev @ self._metric_pose(vo_frame.T_prev_cur)
+            if vo_frame.covariance is not None:
+                s = self._scale.scale
+                J = np.diag([s, s, s, 1.0, 1.0, 1.0])
+                sigma = J @ vo_frame.covariance @ J.T
+            else:
+                sigma = self._pose_head_sigma(gap)
+            source = "vo"
+        else:
+            if vo_frame.state == "initialising":
+                self.counters.initialising_frames += 1
+                sigma = self._pose_head_sigma(gap)
+            else:
+                self.counters.lost_frames += 1
+                sigma = self._pose_head_sigma(gap, LOST_STD)
+            if vo_frame.rotation_from_reference is not None:
+                T_new, source, ms = self._two_view_pose(vo_frame, frame, key, T_prev)
+                inference_ms += ms
+            else:
+                T_new, source = T_prev, "none"
+                if vo_frame.textured and previous_key is not None and self._runner.holds(previous_key):
+                    start = time.perf_counter()
+                    T_ci_cj = self._runner.run(previous_key, key)
+                    inference_ms += (time.perf_counter() - start) * 1e3
+                    if np.isfinite(T_ci_cj).all():
+                        T_new, source = T_prev @ T_ci_cj, "pose_head"
+                        self.counters.pose_head_fallbacks += 1
+        self._remember(frame, T_new)
+        T_ci_cj = invert_transform(T_prev) @ T_new
+        return self._integrate(stamp_ns, T_ci_cj, max(gap, 1), inference_ms, status, source, sigma,
+                               tracking=vo_frame.state, keyframe=vo_frame.keyframe)
+
+    def _two_view_pose(self, vo_frame: VOFrame, frame: int, key: int, T_prev: np.ndarray) -> tuple[np.ndarray, str, float]:
+        """The pose from the motion since the reference frame while there is no map: the rotation, and
+        the direction of travel scaled by the pose head's length for the same pair when the parallax
+        shows one (a rotation alone explains the tracks: no translation)."""
+        reference = self._published.get(vo_frame.reference_frame, T_prev)
+        T_new = reference.copy()
+        T_new[:3, :3] = reference[:3, :3] @ vo_frame.rotation_from_reference
+        if vo_frame.direction_from_reference is None:
+            return T_new, "rotation", 0.0
+        length, ms = self._pose_head_length(vo_frame.reference_frame, frame, key)
+        if length is None:
+            return T_new, "rotation", ms
+        T_new[:3, 3] = reference[:3, 3] + reference[:3, :3] @ (length * vo_frame.direction_from_reference)
+        return T_new, "two_view", ms
+
+    def _pose_head_length(self, older: int, frame: int, key: int) -> tuple[float | None, float]:
+        """The pose head's translation length (m) between two frames, when both are in its ring, and its ms."""
+        older_key = key - (frame - older)
+        if older >= frame or not self._runner.holds(older_key):
+            return None, 0.0
+        start = time.perf_counter()
+        T = self._runner.run(older_key, key)
+        ms = (time.perf_counter() - start) * 1e3
+        length = float(np.linalg.norm(T[:3, 3]))
+        return (length if np.isfinite(length) else None), ms
+
+    def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
+        self._published[frame] = T_odom_cam
+        _trim(self._published)
+
+    def _metric_pose(self, T_map_cam: np.ndarray) -> np.ndarray:
+        T = np.array(T_map_cam, dtype=np.float64)
+        T[:3, 3] *= self._scale.scale
+        return T
+
+    def _start_map(self, vo_frame: VOFrame, frame: int, key: int) -> None:
+        """Anchor a new map in odom at the pose published for its first keyframe; its first scale guess."""
+        reference = vo_frame.reference_frame
+        self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
+        self._anchor_map_id = vo_frame.map_id
+        # The map's unit is the baseline between its first two keyframes; measure it in metres.
+        baseline = np.linalg.norm(vo_frame.T_map_cam[:3, 3])
+        first_guess = None
+        arm_ref = self._arm_position(self._frame_stamps.get(reference, -1)) if reference is not None else None
+        arm_cur = self._arm_position(self._frame_stamps[frame])
+        if arm_ref is not None and arm_cur is not None and baseline > 0:
+            first_guess = float(np.linalg.norm(arm_cur - arm_ref)) / baseline
+        elif reference is not None and baseline > 0:
+            older = max(reference, frame - self.model.max_gap)
+            length, _ = self._pose_head_length(older, frame, key)
+            if length:
+                # Frames between the reference and the pair's first one: assume a steady speed.
+                first_guess = length * (frame - reference) / (frame - older) / baseline
+        scale = first_guess if first_guess and np.isfinite(first_guess) and first_guess > 0 else 1.0
+        self._scale = ScaleEstimate(scale, "arm" if arm_ref is not None and arm_cur is not None else
+                                    ("pose_head" if first_guess else "none"), 0)
+
+    def _update_scale(self, vo_frame: VOFrame) -> None:
+        """At keyframes, refit the scale to the arm poses of the map's keyframes (see :mod:`~nocal_ros.odometry.scale`)."""
+        if not (vo_frame.keyframe and self._arm_stamps and self._vo is not None and self._vo.map is not None):
+            return
+        with self._vo.map.lock:
+            keyframes = [(kf.stamp_ns, kf.T_w_c[:3, 3].copy()) for kf in self._vo.map.keyframes]
+        pairs = [(p, self._arm_position(stamp)) for stamp, p in keyframes]
+        pairs = [(p, a) for p, a in pairs if a is not None]
+        if pairs:
+            estimate = fit_arm_scale(np.array([p for p, _ in pairs]), np.array([a for _, a in pairs]))
+            if estimate is not None:
+                self._scale = estimate
 
     def _start_chain(self, stamp_ns: int, status: str) -> OdometryResult:
         self._has_previous = True
@@ -370,15 +677,13 @@ class OdometryEstimator:
         return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
 
     def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str,
-                   source: str = "pose_head") -> OdometryResult:
+                   source: str, sigma_cam: np.ndarray, tracking: str = "ok", keyframe: bool = False) -> OdometryResult:
         dt = (stamp_ns - self._previous_stamp) * 1e-9
         T_ci_cj = T_ci_cj.copy()
         T_ci_cj[:3, :3] = nearest_rotation(T_ci_cj[:3, :3])  # float32 rotations would drift off SO(3) when chained
         T_bi_bj = self._T_base_cam @ T_ci_cj @ self._T_cam_base
-        sigma_t2 = self.model.pose_error_std["translation_m"] ** 2 * gap
-        sigma_r2 = self.model.pose_error_std["rotation_rad"] ** 2 * gap
         ad = adjoint(self._T_base_cam)
-        sigma_pair = ad @ np.diag([sigma_t2] * 3 + [sigma_r2] * 3) @ ad.T
+        sigma_pair = ad @ sigma_cam @ ad.T
         self._pose_cov = propagate_covariance(self._pose_cov, self._T_odom_base, T_bi_bj, sigma_pair)
         self._T_odom_base = self._T_odom_base @ T_bi_bj
         twist = np.concatenate((T_bi_bj[:3, :3].T @ T_bi_bj[:3, 3], so3_log(T_bi_bj[:3, :3]))) / dt
@@ -386,10 +691,12 @@ class OdometryEstimator:
         self.counters.pairs += 1
         if gap > 1:
             self.counters.bridged_gaps += 1
-        return self._result(stamp_ns, T_bi_bj, twist, sigma_pair / dt**2, status, gap, inference_ms, source)
+        return self._result(stamp_ns, T_bi_bj, twist, sigma_pair / dt**2, status, gap, inference_ms, source,
+                            tracking, keyframe)
 
     def _result(self, stamp_ns, T_prev_curr, twist, twist_cov, status, gap, inference_ms,
-                source: str = "pose_head") -> OdometryResult:
+                source: str = "pose_head", tracking: str = "ok", keyframe: bool = False) -> OdometryResult:
+        scale_source = "pose_head" if self.method == "pose_head" else self._scale.source
         return OdometryResult(
             stamp_ns=stamp_ns,
             T_odom_base=self._T_odom_base.copy(),
@@ -402,52 +709,25 @@ class OdometryEstimator:
             gap=gap,
             inference_ms=inference_ms,
             motion_source=source,
+            tracking=tracking,
+            scale_source=scale_source,
+            keyframe=keyframe,
         )
 
-    # -- calibration -------------------------------------------------------------------------------
 
-    def camera_info(self, width: int | None = None, height: int | None = None) -> tuple["CameraCalibration", float]:
-        """The learnt camera as a ``CameraCalibration`` (K, P, D, distortion_model) and the fit's RMS residual.
-
-        At ``width x height`` (default: the size of the frames seen, else the camera's native size).
-        Fitting the distortion model to the learnt MLP takes a moment, so results are cached per size.
-        Raises NocalError when the model carries no camera.
-        """
-        camera = self.model.camera
-        if camera is None:
-            raise NocalError(f"model {self.model.model_id} has no learnt camera to publish")
-        native = (int(camera.width), int(camera.height))
-        size = (int(width), int(height)) if width and height else (self.image_size or native)
-        with self._lock:
-            cached = self._calibration_cache.get(size)
-        if cached is not None:
-            return cached
-        calibration, residual = fit_calibration(camera, self.distortion_model)
-        if size != native:
-            if abs(size[0] / size[1] - native[0] / native[1]) > 1e-3:
-                raise FrameSizeError(
-                    f"model {self.model.model_id} learnt a {native[0]}x{native[1]} camera; "
-                    f"{size[0]}x{size[1]} images have another aspect ratio"
-                )
-            residual *= size[0] / native[0]
-            calibration = calibration.scaled(*size)
-        with self._lock:
-            self._calibration_cache[size] = (calibration, residual)
-        return calibration, residual
+def _trim(history: OrderedDict) -> None:
+    while len(history) > POSE_HISTORY:
+        history.popitem(last=False)
 
 
-def combine_motion(T_pose_head: np.ndarray, rotation: np.ndarray, direction: np.ndarray | None) -> np.ndarray:
-    """``T_ci_cj`` with two-view geometry's rotation and direction of travel and the pose head's distance.
-
-    Monocular geometry sees the direction of the translation but not its length; the pose head, trained
-    with metric arm poses, gives the length. Without a direction (a pure-rotation fit) the pose head's
-    translation is kept.
-    """
-    T = np.array(T_pose_head, dtype=np.float64)
-    T[:3, :3] = rotation
-    if direction is not None:
-        T[:3, 3] = np.linalg.norm(T[:3, 3]) * np.asarray(direction, dtype=np.float64)
-    return T
+def _resized(calibration: "CameraCalibration", width: int, height: int, what: str) -> "CameraCalibration":
+    """``calibration`` at ``width x height``, which must have its aspect ratio."""
+    if (calibration.width, calibration.height) == (width, height):
+        return calibration
+    if abs(calibration.width / calibration.height - width / height) > 1e-3:
+        raise FrameSizeError(f"{what} is for {calibration.width}x{calibration.height} images; "
+                             f"{width}x{height} has another aspect ratio")
+    return calibration.scaled(width, height)
 
 
 def fit_calibration(camera: Any, distortion_model: str = "auto") -> tuple["CameraCalibration", float]:

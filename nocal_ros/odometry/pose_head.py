@@ -115,17 +115,17 @@ def _training_size(metadata: dict) -> tuple[int, int]:
     return 80, 60  # the paper's training resolution
 
 
-
 class PoseRunner:
-    """Runs the pose head on (previous, current) with no per-frame allocation.
+    """Runs the pose head on any two of the last ``history`` frames with no per-frame allocation.
 
-    Two input slots alternate: the current frame goes into one, the previous frame is in the other,
-    so advancing is a flip of an index rather than a copy. On CUDA a graph is captured for each
-    order of the slots, frames are staged in pinned host memory and uploaded without blocking, and
-    the uint8 -> float conversion runs on the device inside the graph.
+    Each frame is resized once, into a ring of ``history`` slots (on the model's device); a pair is
+    copied into two fixed input buffers and run. On CUDA one graph is captured over those buffers, frames
+    are staged in pinned host memory and uploaded without blocking, and the uint8 -> float conversion runs
+    on the device inside the graph. Frames are named by the key :meth:`load_frame` returns.
     """
 
-    def __init__(self, model: PoseModel, precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True) -> None:
+    def __init__(self, model: PoseModel, precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True,
+                 history: int = DEFAULT_MAX_GAP + 1) -> None:
         self.model = model
         self.width, self.height = model.input_size
         self.device = model.device
@@ -133,76 +133,78 @@ class PoseRunner:
         if precision not in ("fp32", "fp16", "bf16"):
             raise NocalError(f"precision must be fp32, fp16 or bf16, got {precision!r}")
         self.autocast_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(precision) if self.cuda else None
-        pin = self.cuda
         # Channels-last convolutions measured 25 % faster at 80x60 on CPU (1 thread), and the frames
         # arrive as HWC, so the layout change costs nothing. Only the memory layout of the weights changes.
         memory_format = torch.channels_last if channels_last and model.module is not None else torch.contiguous_format
         if memory_format == torch.channels_last:
             model.module.to(memory_format=memory_format)
-        self.host = [torch.empty((self.height, self.width, 3), dtype=torch.uint8, pin_memory=pin) for _ in range(2)]
-        self.frames = [torch.empty((self.height, self.width, 3), dtype=torch.uint8, device=self.device) for _ in range(2)]
+        self.history = max(2, int(history))
+        self.host = torch.empty((self.height, self.width, 3), dtype=torch.uint8, pin_memory=self.cuda)
+        self.ring = torch.empty((self.history, self.height, self.width, 3), dtype=torch.uint8, device=self.device)
+        self.pair = torch.zeros((2, self.height, self.width, 3), dtype=torch.uint8, device=self.device)
         self.inputs = [
             torch.empty((1, 3, self.height, self.width), dtype=torch.float32, device=self.device).contiguous(memory_format=memory_format)
             for _ in range(2)
         ]
-        self.current = 1  # slot of the newest frame
-        self.graphs: list[Any] | None = None
-        self.graph_outputs: list[torch.Tensor] = []
+        self.loaded = 0  # frames loaded so far; the newest has key loaded - 1
+        self.graph: Any = None
+        self.graph_output: torch.Tensor | None = None
         if self.cuda and cuda_graphs:
             self._capture()
 
-    def _forward(self, previous: int, current: int) -> torch.Tensor:
-        for slot in (previous, current):
-            self.inputs[slot].copy_(self.frames[slot].permute(2, 0, 1).unsqueeze(0)).mul_(1.0 / 255.0)
+    def _forward(self) -> torch.Tensor:
+        for slot in (0, 1):
+            self.inputs[slot].copy_(self.pair[slot].permute(2, 0, 1).unsqueeze(0)).mul_(1.0 / 255.0)
         with torch.autocast(self.device.type, dtype=self.autocast_dtype, enabled=self.autocast_dtype is not None):
-            return self.model.predict_pose(self.inputs[previous], self.inputs[current]).float()
+            return self.model.predict_pose(self.inputs[0], self.inputs[1]).float()
 
     def _capture(self) -> None:
         try:
-            for frame in self.frames:
-                frame.zero_()
             stream = torch.cuda.Stream()
             stream.wait_stream(torch.cuda.current_stream())
             with torch.inference_mode(), torch.cuda.stream(stream):
                 for _ in range(3):  # warm-up on a side stream, as CUDA graph capture requires
-                    self._forward(0, 1)
-                    self._forward(1, 0)
+                    self._forward()
             torch.cuda.current_stream().wait_stream(stream)
-            graphs, outputs = [], []
-            for previous, current in ((1, 0), (0, 1)):  # graphs[current]
-                graph = torch.cuda.CUDAGraph()
-                with torch.inference_mode(), torch.cuda.graph(graph):
-                    outputs.append(self._forward(previous, current))
-                graphs.append(graph)
-            self.graphs, self.graph_outputs = graphs, outputs
+            graph = torch.cuda.CUDAGraph()
+            with torch.inference_mode(), torch.cuda.graph(graph):
+                output = self._forward()
+            self.graph, self.graph_output = graph, output
         except Exception as error:  # noqa: BLE001 - any capture failure leaves eager mode working
             log.warning("odometry: CUDA graph capture failed (%s); running eagerly", error)
-            self.graphs = None
+            self.graph = None
+
+    @property
+    def graphs(self) -> Any:
+        """The captured CUDA graph, or None (eager)."""
+        return self.graph
 
     def load_frame(self, image: np.ndarray) -> int:
-        """Resize a native RGB frame into the next slot; returns the slot."""
-        slot = 1 - self.current
+        """Resize a native RGB frame into the ring; returns its key."""
         if image.shape[1] != self.width or image.shape[0] != self.height:
             # INTER_AREA averages the pixels each output pixel covers, like the training data's resize.
-            cv2.resize(image, (self.width, self.height), dst=self.host[slot].numpy(), interpolation=cv2.INTER_AREA)
+            cv2.resize(image, (self.width, self.height), dst=self.host.numpy(), interpolation=cv2.INTER_AREA)
         else:
-            self.host[slot].numpy()[...] = image
-        self.frames[slot].copy_(self.host[slot], non_blocking=self.cuda)
-        self.current = slot
-        return slot
+            self.host.numpy()[...] = image
+        key = self.loaded
+        self.ring[key % self.history].copy_(self.host, non_blocking=self.cuda)
+        self.loaded += 1
+        return key
 
-    def discard(self, slot: int) -> None:
-        """Forget the frame just loaded: the previous frame stays the reference for the next one."""
-        if slot == self.current:
-            self.current = 1 - slot
+    def holds(self, key: int) -> bool:
+        """The frame ``key`` is still in the ring."""
+        return 0 <= key < self.loaded and self.loaded - key <= self.history
 
-    def run(self) -> np.ndarray:
-        """``T_ci_cj`` ``(4, 4)`` float64 for (previous slot, current slot)."""
-        previous, current = 1 - self.current, self.current
+    def run(self, older: int, newer: int) -> np.ndarray:
+        """``T_ci_cj`` ``(4, 4)`` float64 of the frames with keys ``older`` (i) and ``newer`` (j)."""
+        if not (self.holds(older) and self.holds(newer)):
+            raise ValueError(f"frames {older} and {newer} are not both among the last {self.history} loaded")
         with torch.inference_mode():
-            if self.graphs is not None:
-                self.graphs[current].replay()
-                out = self.graph_outputs[current]
+            self.pair[0].copy_(self.ring[older % self.history])
+            self.pair[1].copy_(self.ring[newer % self.history])
+            if self.graph is not None:
+                self.graph.replay()
+                out = self.graph_output
             else:
-                out = self._forward(previous, current)
+                out = self._forward()
             return out[0].double().cpu().numpy()

@@ -62,7 +62,7 @@ PARAMETERS: dict[str, Any] = {
     "model_path": "",
     "device": "auto",
     "precision": "fp32",
-    "two_view": True,
+    "method": "vo",
     "odom_frame": "odom",
     "base_frame": "base_link",
     "camera_frame": "",
@@ -97,7 +97,7 @@ class OdometryNode(Node):
         self.estimator = OdometryEstimator(
             p["model_path"] or None, p["device"], frame_period_s=float(p["frame_period"]) or None,
             distortion_model=str(p["distortion_model"]), precision=str(p["precision"]),
-            two_view=bool(p["two_view"]),
+            method=str(p["method"]),
         )
         self.get_logger().info(
             f"model {self.estimator.model_id} on {self.estimator.model.device}, input "

@@ -1,0 +1,331 @@
+"""Tracking, the VO's per-frame thread of work: persistent corner tracks and PnP on rays.
+
+Corners are followed from frame to frame by pyramidal Lucas-Kanade with a forward-backward check, so a
+track stays on one scene point for as long as it is in view: its id is the id of the landmark it
+becomes once triangulated. New corners are detected only in the cells of a grid that hold too few
+tracks, which keeps the tracks spread over the image (a cluster in one corner would leave the pose and
+the camera's distortion poorly constrained elsewhere). Frames wider than ``work_width`` are tracked at
+that width; coordinates handed out are always native pixels.
+
+Each frame is posed against the local map by PnP inside RANSAC on the tracks that have a landmark. The
+pixels become rays through the online camera (``CameraCalibration.undistorted_normalised``: the one
+pixel -> ray map of the VO), so a better calibration pays off at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: Lucas-Kanade window and pyramid levels (each level halves the image).
+WINDOW = (15, 15)
+PYRAMID_LEVELS = 3
+#: A track whose backward track does not return within this many (work) pixels is a mismatch.
+FORWARD_BACKWARD_PX = 0.5
+
+
+def gray_image(image: np.ndarray) -> np.ndarray:
+    """RGB or mono uint8 ``(H, W[, 3])`` -> mono uint8 ``(H, W)``."""
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def detect_corners(gray: np.ndarray, max_corners: int, mask: np.ndarray | None = None,
+                   min_distance: float | None = None) -> np.ndarray | None:
+    """Up to ``max_corners`` Shi-Tomasi corners ``(N, 1, 2)`` float32 of a mono image, or None.
+
+    Corners at full resolution: detected at half resolution they doubled the rotation error (measured).
+    """
+    distance = max(3, gray.shape[1] // 40) if min_distance is None else min_distance
+    return cv2.goodFeaturesToTrack(gray, int(max_corners), 0.01, distance, mask=mask)
+
+
+def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
+                  guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Track ``corners`` ``(N, 2)`` of image ``i`` into image ``j`` (pyramidal Lucas-Kanade, forward and back).
+
+    ``guess`` ``(N, 2)``: where each corner is expected in ``j`` (a motion prediction), else its position in ``i``.
+    Returns the matched pixels ``(M, 2)`` float64 in ``i`` and in ``j`` and the indices ``(M,)`` of the
+    corners kept: only tracks that come back to within :data:`FORWARD_BACKWARD_PX` of where they started.
+    """
+    points = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 1, 2)
+    if len(points) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    flags = 0
+    tracked = None
+    if guess is not None:
+        tracked = np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2).copy()
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_i, gray_j, points, tracked, winSize=WINDOW,
+                                                  maxLevel=PYRAMID_LEVELS, flags=flags)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_j, gray_i, tracked, points.copy(), winSize=WINDOW,
+                                                    maxLevel=PYRAMID_LEVELS, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    height, width = gray_j.shape[:2]
+    moved = tracked.reshape(-1, 2)
+    inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= width - 1) & (moved[:, 1] <= height - 1)
+    returned = np.linalg.norm((back - points).reshape(-1, 2), axis=1) < FORWARD_BACKWARD_PX
+    good = np.flatnonzero((status.ravel() == 1) & (status_back.ravel() == 1) & returned & inside)
+    return points.reshape(-1, 2)[good].astype(np.float64), moved[good].astype(np.float64), good
+
+
+@dataclass
+class TrackerSettings:
+    """How many tracks, and how they are spread.
+
+    Attributes:
+        max_tracks: tracks kept at most.
+        grid: ``(columns, rows)`` of cells that new corners are spread over.
+        work_width: frames wider than this are tracked at this width (speed); 640 keeps 640x480 native.
+    """
+
+    max_tracks: int = 300
+    grid: tuple[int, int] = (8, 6)
+    work_width: int = 640
+
+
+@dataclass
+class TrackedFrame:
+    """The tracks alive in a frame: ``ids`` ``(N,)`` int64 (increasing) and native ``pixels`` ``(N, 2)``."""
+
+    ids: np.ndarray
+    pixels: np.ndarray
+
+    def select(self, mask: np.ndarray) -> "TrackedFrame":
+        return TrackedFrame(self.ids[mask], self.pixels[mask])
+
+
+class FeatureTracker:
+    """Corner tracks that persist from frame to frame, each with an id that never repeats.
+
+    Call :meth:`track` with each frame, then :meth:`top_up` when more tracks are wanted (at keyframes).
+    """
+
+    def __init__(self, settings: TrackerSettings | None = None) -> None:
+        self.settings = settings or TrackerSettings()
+        self._next_id = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Drop every track (ids keep increasing, so an old id never names a new point)."""
+        self._gray: np.ndarray | None = None
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._points = np.zeros((0, 2), dtype=np.float32)  # work pixels in the last frame
+        self._scale = (1.0, 1.0)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def _work_gray(self, image: np.ndarray) -> np.ndarray:
+        gray = gray_image(image)
+        height, width = gray.shape
+        if width > self.settings.work_width:
+            work_height = max(1, round(height * self.settings.work_width / width))
+            gray = cv2.resize(gray, (self.settings.work_width, work_height), interpolation=cv2.INTER_AREA)
+        self._scale = (width / gray.shape[1], height / gray.shape[0])
+        return gray
+
+    def to_native(self, work_pixels: np.ndarray) -> np.ndarray:
+        """Work-image pixels -> native pixels (pixel centres at integers in both)."""
+        sx, sy = self._scale
+        return (np.asarray(work_pixels, dtype=np.float64) + 0.5) * np.array([sx, sy]) - 0.5
+
+    def to_work(self, native_pixels: np.ndarray) -> np.ndarray:
+        sx, sy = self._scale
+        return (np.asarray(native_pixels, dtype=np.float64) + 0.5) / np.array([sx, sy]) - 0.5
+
+    def current(self) -> TrackedFrame:
+        return TrackedFrame(self._ids.copy(), self.to_native(self._points))
+
+    def track(self, image: np.ndarray, predicted: dict[int, np.ndarray] | None = None) -> TrackedFrame:
+        """Follow the tracks into ``image``; returns the tracks that survived, in native pixels.
+
+        ``predicted``: native pixel positions expected for some track ids (from a motion guess); they seed
+        Lucas-Kanade, which matters when the image moves by more than its pyramid reaches.
+        """
+        gray = self._work_gray(image)
+        previous, self._gray = self._gray, gray
+        if previous is None or previous.shape != gray.shape or len(self._ids) == 0:
+            self._ids = np.zeros(0, dtype=np.int64)
+            self._points = np.zeros((0, 2), dtype=np.float32)
+            return self.current()
+        guess = None
+        if predicted:
+            guess = self._points.astype(np.float64).copy()
+            for row, track_id in enumerate(self._ids.tolist()):
+                if track_id in predicted:
+                    guess[row] = self.to_work(predicted[track_id])
+        _, moved, kept = track_corners(previous, gray, self._points, guess)
+        self._ids = self._ids[kept]
+        self._points = moved.astype(np.float32)
+        return self.current()
+
+    def drop(self, ids: np.ndarray) -> None:
+        """Forget these tracks (outliers: a mismatch never comes back right)."""
+        keep = ~np.isin(self._ids, ids)
+        self._ids, self._points = self._ids[keep], self._points[keep]
+
+    def top_up(self, image: np.ndarray | None = None) -> int:
+        """Detect new corners in the grid cells short of tracks; returns how many were added.
+
+        Uses the last tracked frame (``image`` is only needed when none was tracked yet).
+        """
+        if image is not None and self._gray is None:
+            self._gray = self._work_gray(image)
+        gray = self._gray
+        if gray is None:
+            return 0
+        settings = self.settings
+        wanted = settings.max_tracks - len(self._ids)
+        if wanted <= 0:
+            return 0
+        height, width = gray.shape
+        columns, rows = settings.grid
+        per_cell = max(1, int(np.ceil(settings.max_tracks / (columns * rows))))
+        min_distance = max(3, width // 40)
+        # Existing tracks block their neighbourhood, so a corner is never tracked twice.
+        mask = np.full((height, width), 255, dtype=np.uint8)
+        for x, y in self._points:
+            cv2.circle(mask, (int(round(x)), int(round(y))), min_distance, 0, -1)
+        cell_w, cell_h = width / columns, height / rows
+        counts = np.zeros((rows, columns), dtype=np.int64)
+        if len(self._points):
+            cells_x = np.clip((self._points[:, 0] / cell_w).astype(int), 0, columns - 1)
+            cells_y = np.clip((self._points[:, 1] / cell_h).astype(int), 0, rows - 1)
+            np.add.at(counts, (cells_y, cells_x), 1)
+        new_points = []
+        for row in range(rows):
+            for column in range(columns):
+                room = per_cell - counts[row, column]
+                if room <= 0:
+                    continue
+                x0, x1 = int(round(column * cell_w)), int(round((column + 1) * cell_w))
+                y0, y1 = int(round(row * cell_h)), int(round((row + 1) * cell_h))
+                corners = detect_corners(gray[y0:y1, x0:x1], room, mask[y0:y1, x0:x1], min_distance)
+                if corners is not None:
+                    new_points.append(corners.reshape(-1, 2) + np.array([x0, y0], dtype=np.float32))
+        if not new_points:
+            return 0
+        points = np.concatenate(new_points)[:wanted]
+        ids = np.arange(self._next_id, self._next_id + len(points), dtype=np.int64)
+        self._next_id += len(points)
+        self._ids = np.concatenate((self._ids, ids))
+        self._points = np.concatenate((self._points, points.astype(np.float32)))
+        return len(points)
+
+
+# --------------------------------------------------------------------------------------------------
+# PnP on rays
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PnPResult:
+    """A camera pose from 3D-2D matches: ``T_w_c`` ``(4, 4)``, the inlier mask, and the pose's covariance.
+
+    ``covariance``: ``(6, 6)`` for a right perturbation ``T_w_c Exp(xi)``, ``xi = (rho, theta)``, from the
+    inliers' reprojection Jacobian with the given noise (the information of a motion-only bundle adjustment).
+    """
+
+    T_w_c: np.ndarray
+    inliers: np.ndarray
+    covariance: np.ndarray
+
+
+def _pose_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """OpenCV's ``X_c = R X_w + t`` -> ``T_w_c``."""
+    R, _ = cv2.Rodrigues(rvec)
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ tvec.ravel()
+    return T
+
+
+def _opencv_pose(T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R = T_w_c[:3, :3].T
+    t = -R @ T_w_c[:3, 3]
+    rvec, _ = cv2.Rodrigues(R)
+    return rvec, t.reshape(3, 1)
+
+
+def reprojection_errors(T_w_c: np.ndarray, points_w: np.ndarray, normalised: np.ndarray) -> np.ndarray:
+    """Distances ``(N,)`` between normalised points and the projections of ``points_w`` (inf behind the camera)."""
+    points_c = (points_w - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    z = points_c[:, 2]
+    safe = np.where(z > 1e-9, z, 1.0)
+    errors = np.linalg.norm(points_c[:, :2] / safe[:, None] - normalised, axis=1)
+    return np.where(z > 1e-9, errors, np.inf)
+
+
+def pose_covariance(T_w_c: np.ndarray, points_w: np.ndarray, sigma: float) -> np.ndarray:
+    """``(6, 6)`` covariance of ``T_w_c`` (right perturbation, ``(rho, theta)``) from normalised-point noise ``sigma``.
+
+    The Gauss-Newton information ``J^T J / sigma^2`` of the reprojection residuals at the solution.
+    """
+    points_c = (points_w - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    x, y, z = points_c[:, 0], points_c[:, 1], points_c[:, 2]
+    inv_z = 1.0 / z
+    # d(normalised)/d(points_c): the pinhole projection's Jacobian.
+    J_proj = np.zeros((len(z), 2, 3))
+    J_proj[:, 0, 0] = inv_z
+    J_proj[:, 0, 2] = -x * inv_z**2
+    J_proj[:, 1, 1] = inv_z
+    J_proj[:, 1, 2] = -y * inv_z**2
+    # points_c = Exp(-xi) applied to the old points_c: d/d rho = -I, d/d theta = [points_c]x.
+    J_point = np.zeros((len(z), 3, 6))
+    J_point[:, :, :3] = -np.eye(3)
+    J_point[:, 0, 4], J_point[:, 0, 5] = -z, y
+    J_point[:, 1, 3], J_point[:, 1, 5] = z, -x
+    J_point[:, 2, 3], J_point[:, 2, 4] = -y, x
+    J = np.einsum("nij,njk->nik", J_proj, J_point).reshape(-1, 6)
+    information = J.T @ J / sigma**2
+    return np.linalg.pinv(information)
+
+
+def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
+              guess: np.ndarray | None = None, min_inliers: int = 12, seed: int = 0) -> PnPResult | None:
+    """Pose a camera from landmarks ``points_w`` ``(N, 3)`` and their rays as undistorted normalised points ``(N, 2)``.
+
+    RANSAC over minimal sets (OpenCV's P3P family with ``K = I``, so the threshold is in normalised units:
+    ``pixels / f``), then Levenberg-Marquardt on the inliers. ``guess`` (``T_w_c``) is kept when RANSAC's
+    best hypothesis explains fewer points than it does. Returns None with fewer than ``min_inliers``.
+    """
+    points_w = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)
+    normalised = np.ascontiguousarray(normalised, dtype=np.float64).reshape(-1, 2)
+    finite = np.isfinite(points_w).all(1) & np.isfinite(normalised).all(1)
+    if finite.sum() < max(min_inliers, 4):
+        return None
+    index = np.flatnonzero(finite)
+    object_points, image_points = points_w[index], normalised[index]
+    K = np.eye(3)
+    cv2.setRNGSeed(seed)  # OpenCV's RANSAC draws from a global generator: a replay must repeat exactly
+    ok, rvec, tvec, ransac_inliers = cv2.solvePnPRansac(
+        object_points, image_points, K, None, iterationsCount=100, reprojectionError=threshold,
+        confidence=0.999, flags=cv2.SOLVEPNP_AP3P,
+    )
+    best = None
+    if ok and ransac_inliers is not None and len(ransac_inliers) >= 4:
+        best = _pose_matrix(rvec, tvec)
+    if guess is not None:
+        guess_inliers = reprojection_errors(guess, object_points, image_points) < threshold
+        if best is None or guess_inliers.sum() > (reprojection_errors(best, object_points, image_points) < threshold).sum():
+            best = np.asarray(guess, dtype=np.float64)
+    if best is None:
+        return None
+    # Levenberg-Marquardt on the inliers, twice: the second pass sees the inliers of the refined pose.
+    for _ in range(2):
+        inliers = reprojection_errors(best, object_points, image_points) < threshold
+        if inliers.sum() < max(min_inliers, 4):
+            return None
+        rvec, tvec = _opencv_pose(best)
+        rvec, tvec = cv2.solvePnPRefineLM(object_points[inliers], image_points[inliers], K, None, rvec, tvec)
+        best = _pose_matrix(rvec, tvec)
+    errors = reprojection_errors(best, object_points, image_points)
+    inliers = errors < threshold
+    if inliers.sum() < min_inliers:
+        return None
+    mask = np.zeros(len(points_w), dtype=bool)
+    mask[index[inliers]] = True
+    # Noise from the inliers' own spread (at least a tenth of the threshold: a perfect fit is not certainty).
+    sigma = max(float(np.sqrt(np.mean(errors[inliers] ** 2))), 0.1 * threshold)
+    return PnPResult(best, mask, pose_covariance(best, object_points[inliers], sigma))

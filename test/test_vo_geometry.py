@@ -1,0 +1,180 @@
+"""The VO's geometric pieces against independent references: OpenCV, closed forms, finite differences."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from nocal_ros.geometry import invert_transform, make_transform, so3_exp, so3_log
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.frontend import FeatureTracker, TrackerSettings, pose_covariance, reprojection_errors, solve_pnp
+from nocal_ros.odometry.initializer import rotation_ransac, two_view_map, unit_rays
+from nocal_ros.odometry.map import Keyframe, parallax_deg, triangulate
+from nocal_ros.odometry.scale import fit_arm_scale, umeyama
+
+CAMERA = CameraCalibration(640, 480, np.array([[520.0, 0, 330.0], [0, 515.0, 236.0], [0, 0, 1]]),
+                           np.array([-0.25, 0.08, 0.001, -0.0005, 0.0]), "plumb_bob")
+
+
+def scene(n: int = 200, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack((rng.uniform(-1.5, 1.5, n), rng.uniform(-1.0, 1.0, n), rng.uniform(2.0, 6.0, n)))
+
+
+def pixels_of(points_w: np.ndarray, T_w_c: np.ndarray, camera: CameraCalibration = CAMERA) -> np.ndarray:
+    """OpenCV's projection (the independent reference) of world points into a camera at ``T_w_c``."""
+    T_c_w = invert_transform(T_w_c)
+    rvec, _ = cv2.Rodrigues(T_c_w[:3, :3])
+    pixels, _ = cv2.projectPoints(points_w, rvec, T_c_w[:3, 3], camera.K, camera.D)
+    return pixels.reshape(-1, 2)
+
+
+def test_pnp_on_rays_agrees_with_opencv_on_undistorted_points():
+    rng = np.random.default_rng(1)
+    T_w_c = make_transform(so3_exp(np.array([0.05, -0.1, 0.03])), np.array([0.2, -0.1, 0.3]))
+    points = scene()
+    pixels = pixels_of(points, T_w_c) + rng.normal(scale=0.3, size=(len(points), 2))
+    outliers = rng.choice(len(points), 20, replace=False)
+    pixels[outliers] += rng.uniform(20, 60, size=(20, 2))
+    result = solve_pnp(points, CAMERA.undistorted_normalised(pixels), 2.0 / CAMERA.fx)
+    assert result is not None
+    assert not result.inliers[outliers].any() and result.inliers.sum() >= 170
+    # OpenCV on the same inliers, undistorted by OpenCV itself, from OpenCV's own solver.
+    inliers = result.inliers
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    undistorted = cv2.undistortPoints(pixels[inliers].reshape(-1, 1, 2), CAMERA.K, CAMERA.D, criteria=criteria).reshape(-1, 2)
+    ok, rvec, tvec = cv2.solvePnP(points[inliers], undistorted, np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
+    assert ok
+    R = cv2.Rodrigues(rvec)[0]
+    T_opencv = make_transform(R.T, (-R.T @ tvec).ravel())
+    delta = invert_transform(T_opencv) @ result.T_w_c
+    # Both stop on their own convergence tolerances: agreement to micrometres on a 0.4 m pose.
+    assert np.linalg.norm(delta[:3, 3]) < 1e-5 and np.linalg.norm(so3_log(delta[:3, :3])) < 1e-6
+    # And both near the truth (0.3 px noise).
+    error = invert_transform(T_w_c) @ result.T_w_c
+    assert np.linalg.norm(error[:3, 3]) < 5e-3 and np.degrees(np.linalg.norm(so3_log(error[:3, :3]))) < 0.1
+
+
+def test_pnp_keeps_a_better_guess_and_gives_up_with_too_few_points():
+    points = scene(10)
+    T = np.eye(4)
+    x = CAMERA.undistorted_normalised(pixels_of(points, T))
+    assert solve_pnp(points, x, 1e-3, min_inliers=12) is None
+    result = solve_pnp(points, x, 1e-3, guess=T, min_inliers=8)
+    assert result is not None and np.allclose(result.T_w_c, T, atol=1e-6)
+
+
+def test_pose_covariance_is_the_inverse_of_the_numerical_gauss_newton_information():
+    points = scene(60, seed=3)
+    T = make_transform(so3_exp(np.array([0.1, 0.2, -0.1])), np.array([0.3, 0.1, -0.2]))
+    sigma = 1e-3
+
+    def residuals(xi: np.ndarray) -> np.ndarray:
+        perturbed = T @ make_transform(so3_exp(xi[3:]), xi[:3])
+        points_c = (points - perturbed[:3, 3]) @ perturbed[:3, :3]
+        return (points_c[:, :2] / points_c[:, 2:]).ravel()
+
+    step = 1e-6
+    J = np.column_stack([(residuals(step * e) - residuals(-step * e)) / (2 * step) for e in np.eye(6)])
+    expected = np.linalg.inv(J.T @ J / sigma**2)
+    np.testing.assert_allclose(pose_covariance(T, points, sigma), expected, rtol=1e-4, atol=1e-14)
+
+
+def test_two_view_map_recovers_the_motion_and_waits_for_parallax():
+    points = scene(150, seed=4)
+    T_ref = np.eye(4)
+    T_cur = make_transform(so3_exp(np.array([0.02, -0.05, 0.01])), np.array([0.12, 0.02, 0.03]))
+    x_ref = CAMERA.undistorted_normalised(pixels_of(points, T_ref))
+    x_cur = CAMERA.undistorted_normalised(pixels_of(points, T_cur))
+    result = two_view_map(x_ref, x_cur, 1.0 / CAMERA.fx)
+    assert result is not None and result.inliers.mean() > 0.95
+    np.testing.assert_allclose(result.T_ref_cur[:3, :3], T_cur[:3, :3], atol=1e-6)
+    direction = T_cur[:3, 3] / np.linalg.norm(T_cur[:3, 3])
+    np.testing.assert_allclose(result.T_ref_cur[:3, 3], direction, atol=1e-6)
+    # Landmarks in units of the baseline: the true points divided by the true baseline length.
+    np.testing.assert_allclose(result.points, points[result.inliers] / np.linalg.norm(T_cur[:3, 3]), rtol=1e-5)
+
+    # A camera that only turns shows no parallax: no map, and the rotation from rays is exact.
+    T_turn = make_transform(so3_exp(np.array([0.02, -0.05, 0.01])), np.zeros(3))
+    x_turn = CAMERA.undistorted_normalised(pixels_of(points, T_turn))
+    assert two_view_map(x_ref, x_turn, 1.0 / CAMERA.fx) is None
+    R, inliers = rotation_ransac(unit_rays(x_ref), unit_rays(x_turn), 1.0 / CAMERA.fx)
+    assert inliers.all()
+    np.testing.assert_allclose(R.T, T_turn[:3, :3], atol=1e-9)
+
+
+def test_triangulation_and_parallax_against_the_truth():
+    points = scene(30, seed=5)
+    T_i = np.eye(4)
+    T_j = make_transform(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.5, 0.0, 0.0]))
+    x_i = CAMERA.undistorted_normalised(pixels_of(points, T_i))
+    x_j = CAMERA.undistorted_normalised(pixels_of(points, T_j))
+    np.testing.assert_allclose(triangulate(T_i, T_j, x_i, x_j), points, rtol=1e-7)
+    # Closed form for one point straight ahead of the first camera at depth 4, baseline 0.5 sideways.
+    angle = parallax_deg(T_i, T_j, np.array([[0.0, 0.0, 4.0]]))
+    assert angle[0] == pytest.approx(np.degrees(np.arctan2(0.5, 4.0)), abs=1e-9)
+    assert np.isinf(reprojection_errors(T_i, np.array([[0.0, 0.0, -1.0]]), np.zeros((1, 2))))[0]
+
+
+def test_keyframe_lookup_finds_ids_in_any_order():
+    keyframe = Keyframe(0, 0, 0, np.eye(4), np.array([2, 5, 9, 14]), np.arange(8.0).reshape(4, 2))
+    found, rows = keyframe.lookup(np.array([14, 3, 2, 20]))
+    assert found.tolist() == [True, False, True, False] and rows.tolist() == [3, 0]
+
+
+def test_umeyama_recovers_a_similarity_exactly():
+    rng = np.random.default_rng(6)
+    source = rng.normal(size=(20, 3))
+    R = so3_exp(np.array([0.3, -0.2, 0.9]))
+    target = 2.5 * source @ R.T + np.array([1.0, -2.0, 0.5])
+    s, R_fit, t = umeyama(source, target)
+    assert s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(R_fit, R, atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-12)
+    with pytest.raises(ValueError):
+        umeyama(np.zeros((3, 3)), target[:3])
+
+
+def test_arm_scale_is_the_similarity_fit_and_needs_three_keyframes():
+    map_positions = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 1.0]])
+    arm = 0.3 * map_positions @ so3_exp(np.array([0, 0, 1.0])).T + 4.0
+    assert fit_arm_scale(map_positions[:2], arm[:2]) is None  # two keyframes fix no similarity
+    assert fit_arm_scale(np.zeros((4, 3)), arm) is None  # a map that has not moved has no scale
+    fitted = fit_arm_scale(map_positions, arm)
+    assert fitted.source == "arm" and fitted.scale == pytest.approx(0.3, rel=1e-12) and fitted.samples == 4
+
+
+def shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    return cv2.warpAffine(image, np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]]), (image.shape[1], image.shape[0]),
+                          flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def textured_image(width: int = 320, height: int = 240, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(cv2.resize(rng.integers(0, 256, (height // 8, width // 8), dtype=np.uint8), (width, height),
+                                       interpolation=cv2.INTER_NEAREST), (5, 5), 1.5)
+
+
+def test_tracks_keep_their_ids_follow_the_motion_and_spread_over_the_grid():
+    image = textured_image()
+    tracker = FeatureTracker(TrackerSettings(max_tracks=120, grid=(4, 3)))
+    assert len(tracker.track(image).ids) == 0
+    assert tracker.top_up() > 60
+    start = tracker.current()
+    cells = {(int(u // 80), int(v // 80)) for u, v in start.pixels}
+    assert len(cells) == 12  # every cell of the 4x3 grid has tracks
+    moved = tracker.track(shifted(image, 3.0, -2.0))
+    common = np.isin(start.ids, moved.ids)
+    assert common.mean() > 0.9
+    np.testing.assert_allclose(moved.pixels - start.pixels[common], [[3.0, -2.0]] * int(common.sum()), atol=0.1)
+    tracker.drop(moved.ids[:5])
+    assert not np.isin(moved.ids[:5], tracker.current().ids).any()
+    # A frame wider than the work width is tracked smaller; coordinates stay native.
+    wide = FeatureTracker(TrackerSettings(max_tracks=80, work_width=160))
+    wide.track(image)
+    wide.top_up()
+    before = wide.current()
+    after = wide.track(shifted(image, 4.0, 0.0))
+    common = np.isin(before.ids, after.ids)
+    assert np.abs(np.median(after.pixels[:, 0] - before.pixels[common, 0]) - 4.0) < 0.3
