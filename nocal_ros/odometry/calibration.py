@@ -19,7 +19,6 @@ standard deviation is below :data:`CONVERGED_FOCAL_STD` of its value.
 
 from __future__ import annotations
 
-import os
 import threading
 from typing import Any
 
@@ -43,7 +42,7 @@ GIVEN_CALIBRATION_STD = {"focal": 0.002, "principal_point": 0.002, "radial": 0.0
 #: image centre (as a share of the width), moderate distortion. Without it the first windows, which
 #: cannot separate the focal length from depth, ran off (a held-out camera 4 % from the f = width guess
 #: went to 130 % error, its principal point 190 px out of a 120 px image; measured).
-GUESS_STD = {"focal": float(os.environ.get("NOCAL_GF", "0.5")), "principal_point": float(os.environ.get("NOCAL_GC", "0.05")), "radial": 0.3, "tangential": 0.01}
+GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential": 0.01}
 
 
 def calibration_information(calibration: CameraCalibration, std: dict) -> np.ndarray:
