@@ -343,7 +343,7 @@ def training_settings(config: FinetuneConfig) -> dict:
     """
     settings: dict = {}
     if config.training_config:
-        from nocal_ros.commands.train import load_config
+        from nocal_ros.config import load_config
 
         settings = load_config(Path(os.path.expanduser(config.training_config)))
     recipe_steps = int(settings.get("steps") or 0)

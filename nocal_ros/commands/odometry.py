@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import BagError, NocalError
 from nocal_ros.geometry import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
 
@@ -39,24 +40,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or file, or ROS 1 .bag)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--model", default="", help="checkpoint file or model store (default: the shipped model)")
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda or cuda:N")
     parser.add_argument("--image-topic", default="/camera/image_raw", help="sensor_msgs/Image or CompressedImage topic")
     parser.add_argument("--gt-topic", default="/ground_truth/pose", help="ground-truth camera poses, when the bag has them")
     parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info", help="true calibration, when the bag has it")
     parser.add_argument("--odom-frame", default="odom")
     parser.add_argument("--base-frame", default="", help="child frame of /odom (default: the images' frame id)")
     parser.add_argument(
-        "--base-to-camera", type=float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        "--base-to-camera", type=arg.finite_float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
         help="static pose of the camera optical frame in the base frame (default: identity)",
     )
-    parser.add_argument("--frame-period", type=float, default=None, help="camera frame period in s (default: from stamps)")
+    parser.add_argument("--frame-period", type=arg.positive_float, default=None, help="camera frame period in s (default: from stamps)")
     parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "rational_polynomial"))
     parser.add_argument("--no-two-view", action="store_true",
                         help="pose head only: no rotation and direction from tracked corners through the learnt camera")
     parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
-    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
+    parser.add_argument("--max-frames", type=arg.positive_int, default=None, help="stop after this many images")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--threads", type=arg.thread_count, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

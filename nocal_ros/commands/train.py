@@ -21,8 +21,8 @@ import signal
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from nocal_ros.commands import arguments as arg
+from nocal_ros.config import load_config
 from nocal_ros.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -49,12 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path,
                         help="output directory (default: runs/<config name>); with --init the model store to publish to")
     parser.add_argument("--resume", action="store_true", help="continue pretraining exactly from OUT/last.safetensors")
-    parser.add_argument("--steps", type=int, help="override the config's number of steps")
-    parser.add_argument("--seed", type=int, help="override the config's seed")
-    parser.add_argument("--bench", type=int, metavar="N",
+    parser.add_argument("--steps", type=arg.positive_int, help="override the config's number of steps")
+    parser.add_argument("--seed", type=arg.non_negative_int, help="override the config's seed")
+    parser.add_argument("--bench", type=arg.positive_int, metavar="N",
                         help="time N optimisation steps (after 5 warm-up steps) and print the figures; trains nothing")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
-    parser.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ...")
+    parser.add_argument("--threads", type=arg.thread_count, help="torch CPU threads (default or 0: torch's choice)")
+    parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda, cuda:1, ...")
     bags = parser.add_argument_group("bags")
     bags.add_argument("--image-topic", default="/camera/image_raw")
     bags.add_argument("--pose-topic", default="/arm/pose", help="arm poses (PoseStamped) for --pose-source pose")
@@ -62,26 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="auto: the pose topic if present, else TF, else none (unlabelled: scale not metric)")
     bags.add_argument("--tf-parent", default="base", help="TF edge parent -> child for --pose-source tf")
     bags.add_argument("--tf-child", default="tool")
-    bags.add_argument("--hand-eye", type=float, nargs=16, metavar="T", help="T_tool_cam, row-major 4x4 (default identity)")
-    bags.add_argument("--tolerance", type=float, default=0.02, help="seconds between an image and its arm pose")
-    bags.add_argument("--max-frames", type=int, help="read at most this many frames per bag")
+    bags.add_argument("--hand-eye", type=arg.finite_float, nargs=16, metavar="T", help="T_tool_cam, row-major 4x4 (default identity)")
+    bags.add_argument("--tolerance", type=arg.positive_float, default=0.02, help="seconds between an image and its arm pose")
+    bags.add_argument("--max-frames", type=arg.positive_int, help="read at most this many frames per bag")
     finetune = parser.add_argument_group("fine-tuning (--init)")
     finetune.add_argument("--camera-start", default="reset", choices=("reset", "init"),
                           help="reset: f = width, centred principal point (a new camera); init: the model's camera of the same size")
-    finetune.add_argument("--keep", type=int, default=5, help="versions kept in the store (0: all)")
-
-
-def load_config(path: Path) -> dict[str, Any]:
-    """The YAML file as a dict; ConfigError naming the file when it is missing or malformed."""
-    try:
-        config = yaml.safe_load(Path(path).read_text())
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read config ({error.strerror})") from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(error).split())})") from None
-    if not isinstance(config, dict):
-        raise ConfigError(f"{path}: config must be a mapping of training settings")
-    return config
+    finetune.add_argument("--keep", type=arg.non_negative_int, default=5, help="versions kept in the store (0: all)")
 
 
 def synthetic_sequences(section: dict[str, Any] | None, source: str) -> list:
