@@ -28,8 +28,13 @@ from typing import Any
 import numpy as np
 
 from nocal_ros.commands import arguments as arg
-from nocal_ros.errors import BagError, NocalError
-from nocal_ros.geometry import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
+from nocal_ros.errors import BagError, ConfigError, NocalError
+from nocal_ros.geometry import (
+    InvalidTransformError,
+    invert_transform,
+    matrix_to_quaternion,
+    transform_from_translation_quaternion,
+)
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +75,10 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     T_base_cam = None
     if args.base_to_camera:
-        x, y, z, qx, qy, qz, qw = args.base_to_camera
-        T_base_cam = make_transform(quaternion_to_matrix(np.array([qx, qy, qz, qw])), np.array([x, y, z]))
+        try:
+            T_base_cam = transform_from_translation_quaternion(args.base_to_camera[:3], args.base_to_camera[3:])
+        except InvalidTransformError as error:
+            raise ConfigError(f"--base-to-camera: {error}") from None
     estimator = OdometryEstimator(
         args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
         distortion_model=args.distortion_model, two_view=not args.no_two_view,
