@@ -12,18 +12,24 @@ A checkpoint ``model.safetensors`` has a sidecar ``model.json`` holding:
 Tensors (never pickles): ``model.*``, ``camera.<k>.*``, and for resumable checkpoints ``optim.*``
 (Adam moments and step counts) and ``rng.*`` (generator states as uint8).
 
-Writing goes to a temporary file in the same directory, is fsynced and moved into place with
-``os.replace``: weights first, sidecar last, so a crash leaves either the old pair or a new weights file
-whose hash the old sidecar does not match (refused, never silently mixed).
+The weights and the sidecar are replaced as a pair. Both are written to temporary files first
+(fsynced); the current pair is kept as ``.<name>.previous`` (hard links, so no copy) until the new
+weights and then the new sidecar have been moved into place with ``os.replace``; only then is the
+previous pair removed. A crash, a kill or a full disk at any moment therefore leaves a complete pair:
+the new one, the old one, or (inside the window between the two renames) the old one as
+``.previous``, which the loader falls back to when the pair under the real names does not match.
+Weights and sidecar are never silently mixed: the sidecar carries the weights' SHA-256.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
-import uuid
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +41,10 @@ from safetensors.torch import save as safetensors_save
 
 from nocal_ros.camera import STAGES, CameraModel
 from nocal_ros.errors import CheckpointError
+from nocal_ros.files import fsync_dir, pause_point, remove_stale_temporaries, temporary_name
 from nocal_ros.model import DEFAULT_MODEL_CONFIG, NOCaL, model_config
+
+log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parent / "models" / "default.safetensors"
@@ -61,28 +70,80 @@ def sidecar_path(path: str | os.PathLike) -> Path:
 # ------------------------------------------------------------------------------------------------
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+#: Points of the pair commit where the test hook ``NOCAL_CHECKPOINT_PAUSE_AT`` can hold a writer (see
+#: :func:`nocal_ros.files.pause_point`); "weights-replaced" is inside the window between the two renames.
+PAUSE_POINTS = ("previous-kept", "weights-replaced", "sidecar-replaced")
+
+
+def previous_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+    """Where the pair being replaced is kept until the new pair is complete: ``(weights, sidecar)``."""
+    path = Path(path)
+    side = sidecar_path(path)
+    return path.with_name(f".{path.name}.previous"), side.with_name(f".{side.name}.previous")
+
+
+def _keep_copy(source: Path, destination: Path) -> None:
+    """``destination`` becomes a copy of ``source`` in one rename: a hard link where the filesystem has
+    them (no data copied), else a real copy."""
+    temporary = temporary_name(destination)
     try:
-        with open(temporary, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
+        try:
+            os.link(source, temporary)
+        except OSError:  # FAT, some network filesystems
+            shutil.copyfile(source, temporary)
+        os.replace(temporary, destination)
     finally:
-        if temporary.exists():
+        with contextlib.suppress(OSError):
             temporary.unlink()
-    # Make the rename itself durable.
+
+
+def _pair_matches(weights: Path, side: Path) -> bool:
+    """True when ``side`` holds the SHA-256 of ``weights`` (a complete pair)."""
     try:
-        directory = os.open(path.parent, os.O_RDONLY)
-    except OSError:
-        return
+        recorded = json.loads(side.read_text(encoding="utf-8")).get("weights_sha256")
+        digest = hashlib.sha256()
+        with open(weights, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
+    return digest.hexdigest() == recorded
+
+
+def _replace_pair(path: Path, data: bytes, sidecar_text: str) -> None:
+    """Replace ``path`` and its sidecar so that a complete pair exists at every moment (module notes)."""
+    side = sidecar_path(path)
+    previous_weights, previous_side = previous_paths(path)
+    for name in (path, side, previous_weights, previous_side):
+        remove_stale_temporaries(name)  # a writer killed mid-save leaves its temporary files
+    weights_tmp, side_tmp = temporary_name(path), temporary_name(side)
     try:
-        os.fsync(directory)
-    except OSError:
-        pass
+        for temporary, content in ((weights_tmp, data), (side_tmp, sidecar_text.encode())):
+            with open(temporary, "wb") as handle:
+                handle.write(content)
+                handle.flush()
+                os.fsync(handle.fileno())
+        if path.is_file() and side.is_file():
+            # A previous pair left behind means an earlier save stopped between its two renames: the
+            # pair under the real names may then be the mismatched one, and the previous pair the good one.
+            stale = previous_weights.exists() or previous_side.exists()
+            if not stale or _pair_matches(path, side):
+                _keep_copy(path, previous_weights)
+                _keep_copy(side, previous_side)
+                fsync_dir(path.parent)
+        pause_point("CHECKPOINT", "previous-kept")
+        os.replace(weights_tmp, path)
+        pause_point("CHECKPOINT", "weights-replaced")
+        os.replace(side_tmp, side)
+        fsync_dir(path.parent)
+        pause_point("CHECKPOINT", "sidecar-replaced")
     finally:
-        os.close(directory)
+        for temporary in (weights_tmp, side_tmp):
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+    for kept in (previous_weights, previous_side):
+        kept.unlink(missing_ok=True)
+    fsync_dir(path.parent)
 
 
 #: Sidecar name of each :data:`~nocal_ros.camera.DISTORTION_FORMS` entry (``mlp``: the raw output, the
@@ -165,8 +226,7 @@ def save_checkpoint(
         "training": training_json,
     }
     text = json.dumps(sidecar, indent=1, sort_keys=True, default=_json_default)
-    _write_atomic(path, data)
-    _write_atomic(sidecar_path(path), text.encode())
+    _replace_pair(path, data, text)
     return path
 
 
@@ -401,7 +461,7 @@ def _expected_tensors(sidecar: dict[str, Any], side: Path) -> dict[str, tuple[st
     return {name: (_SAFETENSORS_DTYPES.get(t.dtype, str(t.dtype)), tuple(t.shape)) for name, t in expected.items()}
 
 
-def _check_header(path: Path, sidecar: dict[str, Any]) -> None:
+def _check_header(path: Path, side: Path, sidecar: dict[str, Any]) -> None:
     """Compare the tensors the sidecar describes with the safetensors header, before reading the data."""
     size = path.stat().st_size
     if size > MAX_CHECKPOINT_BYTES:
@@ -417,7 +477,7 @@ def _check_header(path: Path, sidecar: dict[str, Any]) -> None:
                         for name, entry in header.items() if name != "__metadata__"}
         except (UnicodeDecodeError, ValueError, RecursionError, KeyError, TypeError, AttributeError):
             raise CheckpointError(f"{path}: not a readable safetensors file (malformed header)") from None
-    for name, (dtype, shape) in _expected_tensors(sidecar, sidecar_path(path)).items():
+    for name, (dtype, shape) in _expected_tensors(sidecar, side).items():
         if name not in declared:
             raise CheckpointError(f"{path}: tensor {name}, which the sidecar's model needs, is missing")
         if declared[name] != (dtype, shape):
@@ -432,16 +492,15 @@ def _check_header(path: Path, sidecar: dict[str, Any]) -> None:
 # ------------------------------------------------------------------------------------------------
 
 
-def _read(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """The sidecar and the tensors of ``path``, after every consistency check that needs no model."""
+def _read_pair(path: Path, side: Path, name: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The sidecar and tensors of weights ``path`` with sidecar ``side``, for a checkpoint called ``name``."""
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
-    side = sidecar_path(path)
     if not side.is_file():
         raise CheckpointError(f"{path}: JSON sidecar {side.name} is missing")
     sidecar = _read_sidecar(side)
-    validate_sidecar(sidecar, side, path.name)
-    _check_header(path, sidecar)
+    validate_sidecar(sidecar, side, name)
+    _check_header(path, side, sidecar)
     data = path.read_bytes()
     if hashlib.sha256(data).hexdigest() != sidecar.get("weights_sha256"):
         raise CheckpointError(f"{path}: weights do not match the sidecar's checksum (changed, truncated or replaced)")
@@ -450,10 +509,31 @@ def _read(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
         tensors = safetensors_load(data)
     except (SafetensorError, ValueError, RuntimeError) as error:
         raise CheckpointError(f"{path}: not a readable safetensors file ({error})") from None
-    for name, tensor in tensors.items():
+    for tensor_name, tensor in tensors.items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            raise CheckpointError(f"{path}: tensor {name} holds NaN or infinite values")
+            raise CheckpointError(f"{path}: tensor {tensor_name} holds NaN or infinite values")
     return sidecar, tensors
+
+
+def _read(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The sidecar and the tensors of ``path``, after every consistency check that needs no model.
+
+    When the pair under the real names fails and a ``.previous`` pair exists (a save was interrupted
+    between its two renames, see the module notes), that complete previous pair is loaded instead.
+    """
+    try:
+        return _read_pair(path, sidecar_path(path), path.name)
+    except CheckpointError as error:
+        previous_weights, previous_side = previous_paths(path)
+        if not (previous_weights.is_file() and previous_side.is_file()):
+            raise
+        try:
+            result = _read_pair(previous_weights, previous_side, path.name)
+        except CheckpointError:
+            raise error from None
+        log.warning("%s: loading the previous checkpoint, kept while a save that did not finish replaced it (%s)",
+                    path, error)
+        return result
 
 
 def _load_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], prefix: str, path: Path) -> None:

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nocal_ros.errors import CheckpointError
+from nocal_ros.files import pause_point, pid_alive
 
 log = logging.getLogger(__name__)
 
@@ -52,20 +53,14 @@ STAGING_PREFIX = ".staging-"
 FORMAT_VERSION = 1
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
 
-# Test hook: when NOCAL_STORE_PAUSE_AT names a point of the commit sequence, the writer creates the
-# file named by NOCAL_STORE_PAUSE_FILE and sleeps there, so a test can SIGKILL a real process at a
-# known moment instead of racing it.
+# Test hook (nocal_ros.files.pause_point): when NOCAL_STORE_PAUSE_AT names one of these points of the
+# commit sequence, the writer creates the file named by NOCAL_STORE_PAUSE_FILE and sleeps there, so a
+# test can SIGKILL a real process at a known moment instead of racing it.
 PAUSE_POINTS = ("staging-written", "manifest-written", "version-renamed", "pointer-tmp-written")
 
 
 def _pause_point(name: str) -> None:
-    if os.environ.get("NOCAL_STORE_PAUSE_AT") != name:
-        return
-    signal_file = os.environ.get("NOCAL_STORE_PAUSE_FILE")
-    if signal_file:
-        Path(signal_file).write_text(name)
-    while True:  # the test kills us here
-        time.sleep(0.05)
+    pause_point("STORE", name)
 
 
 def _fsync_file(path: Path) -> None:
@@ -90,20 +85,6 @@ def _sha256(path: Path) -> str:
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    except OSError:
-        return False
-    return True
 
 
 def _write_json_atomic(path: Path, data: dict, pause_before_replace: str | None = None) -> None:
@@ -235,13 +216,13 @@ class ModelStore:
                 continue
             pid_text = entry.name[len(STAGING_PREFIX):].split("-", 1)[0]
             # Our own pid may be another thread's staging in progress; a live pid is a writer at work.
-            if pid_text.isdigit() and (int(pid_text) == os.getpid() or _pid_alive(int(pid_text))):
+            if pid_text.isdigit() and (int(pid_text) == os.getpid() or pid_alive(int(pid_text))):
                 continue
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
         for entry in self.root.glob(f".{POINTER_NAME}.*.tmp"):
             pid_text = entry.name.split(".")[3]
-            if pid_text.isdigit() and int(pid_text) != os.getpid() and not _pid_alive(int(pid_text)):
+            if pid_text.isdigit() and int(pid_text) != os.getpid() and not pid_alive(int(pid_text)):
                 entry.unlink(missing_ok=True)
                 removed.append(entry)
         return removed
