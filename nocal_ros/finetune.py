@@ -202,9 +202,9 @@ def _initial_model_path(config: FinetuneConfig) -> Path | None:
     """The checkpoint to start from (None: the shipped default)."""
     if config.init:
         return resolve_model_path(config.init)
-    store = ModelStore(config.output)
-    latest = store.latest()
-    return latest.model_path if latest is not None else None
+    if ModelStore(config.output).latest() is None:
+        return None
+    return resolve_model_path(config.output)  # verified against its manifest, like any model loaded from a store
 
 
 class _ProgressReporter:

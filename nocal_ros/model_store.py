@@ -155,14 +155,27 @@ class ModelStore:
             raise CheckpointError(f"{manifest_path}: unreadable manifest: {error}") from error
         if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
             raise CheckpointError(f"{manifest_path}: malformed manifest")
+        model = manifest.get("model", MODEL_NAME)
+        if not _plain_file_name(model):
+            raise CheckpointError(f"{manifest_path}: model {str(model)[:80]!r} is not a file name in the version directory; refused")
+        for name, entry in manifest["files"].items():
+            if not _plain_relative_path(name) or not isinstance(entry, dict):
+                raise CheckpointError(f"{manifest_path}: file entry {str(name)[:80]!r} leaves the version directory or is malformed; refused")
+        if model not in manifest["files"]:
+            raise CheckpointError(f"{manifest_path}: the model file {model!r} has no size and SHA-256 to check it against")
         return manifest
+
+    def _check_inside(self, version_dir: Path) -> None:
+        """Refuse a version directory that is a symlink or lies outside the store."""
+        if version_dir.is_symlink() or not _inside(version_dir, self.root):
+            raise CheckpointError(f"{version_dir}: model version is a symlink or lies outside the store {self.root}; refused")
 
     def versions(self) -> list[ModelVersion]:
         """Complete versions (those with a manifest), oldest first."""
         found = []
         for entry in self.root.iterdir() if self.root.is_dir() else []:
             match = _VERSION_RE.match(entry.name)
-            if not match or not entry.is_dir():
+            if not match or not entry.is_dir() or entry.is_symlink():
                 continue
             try:
                 manifest = self._read_manifest(entry)
@@ -191,16 +204,23 @@ class ModelStore:
         if not isinstance(name, str) or not _VERSION_RE.match(name):
             raise CheckpointError(f"{self.pointer_path}: pointer names an invalid version {name!r}")
         version_dir = self.root / name
+        self._check_inside(version_dir)
         manifest = self._read_manifest(version_dir)
         version = ModelVersion(name, version_dir, manifest)
         if not version.model_path.is_file():
             raise CheckpointError(f"{version.model_path}: model file named by {self.pointer_path} is missing")
+        recorded = manifest["files"][manifest.get("model", MODEL_NAME)].get("sha256")
+        if pointer.get("sha256") not in (None, recorded) or pointer.get("model") not in (None, manifest.get("model", MODEL_NAME)):
+            raise CheckpointError(f"{self.pointer_path}: pointer and the manifest of {name} disagree on the model; refused")
         return version
 
     def verify(self, version: ModelVersion) -> None:
-        """Check every file of ``version`` against the sizes and SHA-256 in its manifest."""
+        """Check every file of ``version`` against the sizes and SHA-256 in its manifest (and that none
+        of them leaves the version directory, through a symlink or otherwise)."""
         for name, entry in version.manifest["files"].items():
             path = version.path / name
+            if not _inside(path, version.path):
+                raise CheckpointError(f"{path}: leaves model version {version.name} (a symlink out of it); refused")
             if not path.is_file():
                 raise CheckpointError(f"{path}: missing from model version {version.name}")
             if path.stat().st_size != entry.get("size") or _sha256(path) != entry.get("sha256"):
@@ -323,6 +343,24 @@ def _model_file_name(version_dir: Path) -> str:
     return candidates[0]
 
 
+def _inside(path: Path, directory: Path) -> bool:
+    """True when ``path``, with every symlink resolved, lies inside ``directory`` (also resolved)."""
+    try:
+        path.resolve().relative_to(directory.resolve())
+    except (ValueError, OSError, RuntimeError):  # RuntimeError: a symlink loop
+        return False
+    return True
+
+
+def _plain_file_name(name: object) -> bool:
+    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name
+
+
+def _plain_relative_path(name: object) -> bool:
+    return isinstance(name, str) and bool(name) and not name.startswith("/") and all(
+        _plain_file_name(part) for part in name.split("/"))
+
+
 def is_store(path: str | os.PathLike) -> bool:
     """True when ``path`` is a directory laid out as a model store."""
     path = Path(path)
@@ -336,6 +374,10 @@ def resolve_model_path(path: str | os.PathLike) -> Path:
     Accepts a ``.safetensors`` file, a version directory (its manifest names the model file; or a
     directory holding ``model.safetensors``), or a store
     directory (follows ``latest.json``). Raises CheckpointError naming the path when none applies.
+
+    A model reached through a store or a version directory is verified first: no path in it may leave
+    the store (``../`` in a manifest, a version directory that is a symlink out of it), and every file
+    must match the size and SHA-256 its manifest recorded.
     """
     path = Path(path)
     if path.is_file():
@@ -344,13 +386,16 @@ def resolve_model_path(path: str | os.PathLike) -> Path:
         raise CheckpointError(f"{path}: model file or store does not exist")
     if path.is_dir():
         if (path / POINTER_NAME).exists():
-            version = ModelStore(path, create=False).latest()
+            store = ModelStore(path, create=False)
+            version = store.latest()
             assert version is not None
+            store.verify(version)
             return version.model_path
         if (path / MANIFEST_NAME).is_file():  # a version directory
             store = ModelStore(path.parent, create=False)
             version = ModelVersion(path.name, path, store._read_manifest(path))
             if version.model_path.is_file():
+                store.verify(version)
                 return version.model_path
         if (path / MODEL_NAME).is_file():
             return path / MODEL_NAME
