@@ -4,7 +4,8 @@ Pretraining (no ``--init``) trains on bags or on the config's rendered ``synthet
 process or under ``torchrun --nproc_per_node N`` with DistributedDataParallel (gloo on CPU, nccl on
 GPU). It writes ``metrics.csv``, a resumable ``last.safetensors`` and the final ``model.safetensors``
 (each with its JSON sidecar) into ``--out``. Ctrl-C stops at the next step and leaves a resumable
-checkpoint (``--resume`` continues it exactly).
+checkpoint (``--resume`` continues it exactly). An ``--out`` that already holds a run is refused unless
+``--resume`` continues it or ``--overwrite`` deletes it first.
 
 Fine-tuning (``--init MODEL --bag BAG ...``) is field re-calibration: exactly the job the trainer node
 runs (``nocal_ros.finetune.FinetuneJob``, in a worker process). ``--out`` is then a model store: the
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import signal
 from pathlib import Path
 from typing import Any
@@ -49,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path,
                         help="output directory (default: runs/<config name>); with --init the model store to publish to")
     parser.add_argument("--resume", action="store_true", help="continue pretraining exactly from OUT/last.safetensors")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the training run already in --out (its model, last checkpoint, metrics and "
+                             "TensorBoard logs are deleted first); without it or --resume such an --out is refused")
     parser.add_argument("--steps", type=arg.positive_int, help="override the config's number of steps")
     parser.add_argument("--seed", type=arg.non_negative_int, help="override the config's seed")
     parser.add_argument("--bench", type=arg.positive_int, metavar="N",
@@ -126,8 +131,10 @@ def run(args: argparse.Namespace) -> int:
         raw["seed"] = args.seed
     config = training_config(raw, source=source)
     out_dir = args.out or Path("runs") / args.config.stem
-    distributed = _init_distributed(args.device)
     rank = int(os.environ.get("RANK", "0"))
+    if not args.bench:
+        prepare_run_dir(out_dir, resume=args.resume, overwrite=args.overwrite, remove=rank == 0)
+    distributed = _init_distributed(args.device)
     try:
         if args.bag:
             from nocal_ros.data.bags import read_sequence
@@ -180,6 +187,41 @@ def run(args: argparse.Namespace) -> int:
             torch.distributed.destroy_process_group()
 
 
+#: What a pretraining run writes into --out (``training.train``), and the pair a save may keep aside.
+RUN_OUTPUTS = ("model.safetensors", "model.json", "last.safetensors", "last.json", "metrics.csv", "tensorboard")
+
+
+def prepare_run_dir(out_dir: Path, resume: bool, overwrite: bool, remove: bool = True) -> None:
+    """Refuse to train into a directory that holds a run unless asked to ``resume`` it or ``overwrite`` it.
+
+    ``overwrite`` deletes the earlier run's outputs before training starts (``remove``: on rank 0 only),
+    so a failed new run never leaves the old model beside new metrics.
+    """
+    from nocal_ros.checkpoint import previous_paths
+
+    if resume and overwrite:
+        raise ConfigError("give --resume (continue the run in --out) or --overwrite (replace it), not both")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"{out_dir}: exists and is not a directory")
+    names = list(RUN_OUTPUTS)
+    for checkpoint_name in ("model.safetensors", "last.safetensors"):
+        names += [p.name for p in previous_paths(out_dir / checkpoint_name)]
+    existing = [name for name in names if (out_dir / name).exists()]
+    if not existing or resume:
+        return
+    if not overwrite:
+        raise ConfigError(f"{out_dir}: already holds a training run ({', '.join(existing)}); "
+                          "pass --resume to continue it or --overwrite to replace it")
+    if remove:
+        for name in existing:
+            target = out_dir / name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            else:
+                target.unlink()
+        log.info("--overwrite: removed the earlier run's %s from %s", ", ".join(existing), out_dir)
+
+
 def bag_options(args: argparse.Namespace) -> dict[str, Any]:
     """``read_sequence`` keyword arguments from the command line's bag options."""
     import numpy as np
@@ -203,6 +245,9 @@ def finetune_config(args: argparse.Namespace):
     if args.resume:
         raise ConfigError("--resume continues pretraining; a fine-tuning run (--init) is not resumable: "
                           "a cancelled run kept the previous model, so start it again")
+    if args.overwrite:
+        raise ConfigError("--overwrite replaces a pretraining run; fine-tuning (--init) adds a version to the "
+                          "model store --out and never replaces one (--keep prunes old versions)")
     if args.bench:
         raise ConfigError("--bench times pretraining steps; leave out --init")
     if not args.bag:
