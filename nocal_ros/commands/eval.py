@@ -60,11 +60,11 @@ def run(args: argparse.Namespace) -> int:
 
 def write_json(path: Path, report: dict[str, Any]) -> None:
     """Write atomically: a reader (or a crash) never sees half a report."""
+    from nocal_ros.files import write_atomic
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".tmp")
-    temporary.write_text(json.dumps(report, indent=1), encoding="utf-8")
-    os.replace(temporary, path)
+    write_atomic(path, json.dumps(report, indent=1))
 
 
 def predict_consecutive_poses(

@@ -9,17 +9,27 @@ Writes into ``DIR``:
 * when the bag has ground truth: ``report.json`` (RPE and APE with and without scale alignment,
   focal and ``dr`` errors) and ``trajectory.png``.
 
-Nothing already in ``DIR`` is replaced unless ``--overwrite`` is given, and a failure half-way
-(a corrupt message, an interrupt) leaves no partial odometry bag behind.
+Nothing already in ``DIR`` is replaced unless ``--overwrite`` is given. Every output is written into
+a hidden staging directory in ``DIR`` and moved into place only once all are complete, so a failure
+half-way (a corrupt message, an interrupt, a full disk) leaves ``DIR`` exactly as it was; with
+``--overwrite``, earlier outputs this run does not produce (a report without ground truth) are removed.
+
+Stamps: ``/odom`` holds every pose in the order the frames came. When header stamps jump back, the
+estimator restarts its odom frame (``time_reset``), so the poses form several segments, each in its
+own odom frame; ``trajectory.tum`` and the report hold the longest segment (stamps strictly
+increasing; the first of equally long ones), and the report says how many segments there were.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import os
+import shutil
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,10 +120,14 @@ class ReplayResult:
     extras: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> str:
+        poses = self.extras.get("poses", len(self.stamps_ns))
         lines = [
-            f"model {self.model_id}: {self.frames_in} frames -> {len(self.stamps_ns)} poses in {self.seconds:.1f} s "
+            f"model {self.model_id}: {self.frames_in} frames -> {poses} poses in {self.seconds:.1f} s "
             f"({1e3 * self.seconds / max(self.frames_in, 1):.1f} ms per frame)",
         ]
+        if self.extras.get("time_segments", 1) > 1:
+            lines.append(f"stamps went back: trajectory.tum and the report hold the longest of "
+                         f"{self.extras['time_segments']} segments ({len(self.stamps_ns)} poses; /odom has all {poses})")
         skipped = {k: v for k, v in self.counters.items() if k not in ("frames", "pairs") and v}
         if skipped:
             lines.append("events: " + ", ".join(f"{k} {v}" for k, v in skipped.items()))
@@ -145,15 +159,68 @@ def _check_outputs(out_dir: Path, overwrite: bool) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
+STAGING_PREFIX = ".nocal-odometry-"
+
+
+class StagedOutputs:
+    """A hidden directory in ``out_dir`` that a replay writes every output into; :meth:`commit` moves them
+    into place together (renames: no space needed), and leaving the block by an exception deletes it,
+    so ``out_dir`` keeps exactly what it held before. ``stage[name]`` is where output ``name`` goes."""
+
+    def __init__(self, out_dir: Path) -> None:
+        from nocal_ros.files import pid_alive
+
+        self.out_dir = out_dir
+        for stale in out_dir.glob(f"{STAGING_PREFIX}*"):  # left by a replay that was killed
+            pid = stale.name[len(STAGING_PREFIX):].split("-", 1)[0]
+            if pid.isdigit() and not pid_alive(int(pid)):
+                shutil.rmtree(stale, ignore_errors=True)
+        self.path = out_dir / f"{STAGING_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+    def __enter__(self) -> "StagedOutputs":
+        self.path.mkdir()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+    def __getitem__(self, name: str) -> Path:
+        return self.path / name
+
+    def commit(self) -> dict[str, Path]:
+        """Replace every earlier output in ``out_dir`` by this run's; returns the outputs' final paths."""
+        from nocal_ros.files import fsync_dir
+
+        produced = [name for name in OUTPUT_NAMES if self[name].exists()]
+        replaced = self.path / ".replaced"
+        replaced.mkdir()
+        for name in OUTPUT_NAMES:  # also the ones this run does not produce: no stale report beside new results
+            if (self.out_dir / name).exists() or (self.out_dir / name).is_symlink():
+                os.replace(self.out_dir / name, replaced / name)
+        for name in produced:
+            os.replace(self[name], self.out_dir / name)
+        fsync_dir(self.out_dir)
+        return {name: self.out_dir / name for name in produced}
+
+
 def write_tum(path: Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
     """TUM trajectory (``stamp_s x y z qx qy qz qw``), written atomically."""
-    temporary = path.with_name(f".{path.name}.tmp")
-    with open(temporary, "w", encoding="utf-8") as handle:
-        for stamp, T in zip(stamps_ns.tolist(), poses):
-            q = matrix_to_quaternion(T[:3, :3])
-            seconds, nanos = divmod(int(stamp), 1_000_000_000)
-            handle.write(f"{seconds}.{nanos:09d} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) + "\n")
-    os.replace(temporary, path)
+    from nocal_ros.files import write_atomic
+
+    lines = []
+    for stamp, T in zip(stamps_ns.tolist(), poses):
+        q = matrix_to_quaternion(T[:3, :3])
+        seconds, nanos = divmod(int(stamp), 1_000_000_000)
+        lines.append(f"{seconds}.{nanos:09d} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) + "\n")
+    write_atomic(path, "".join(lines))
+
+
+def time_segments(stamps_ns: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, end)`` index ranges of ``stamps_ns`` whose stamps strictly increase: a stamp at or before
+    the one before it (time went back, so the estimator restarted its odom frame) starts a new range."""
+    breaks = (np.flatnonzero(np.diff(np.asarray(stamps_ns, dtype=np.int64)) <= 0) + 1).tolist()
+    bounds = [0, *breaks, len(stamps_ns)]
+    return [(start, end) for start, end in zip(bounds[:-1], bounds[1:]) if end > start]
 
 
 def _frames(bag: Path, image_topic: str, max_frames: int | None, progress: bool) -> Iterator[tuple[int, str, np.ndarray]]:
@@ -190,14 +257,43 @@ def replay_bag(
     plot: bool = True,
 ) -> ReplayResult:
     """Run ``estimator`` over a bag's images and write the outputs (see the module notes)."""
-    from nocal_ros.data.bags import BagWriter
-    from nocal_ros.odometry import FrameError, FrameSizeError
-
     bag, out_dir = Path(bag), Path(out_dir)
     if not bag.exists():
         raise BagError(f"{bag}: no such bag (file or directory does not exist)")
     _check_outputs(out_dir, overwrite)
-    outputs = {"odometry": out_dir / "odometry", "trajectory.tum": out_dir / "trajectory.tum"}
+    if gt_topic and gt_topic in _topics(bag):
+        from nocal_ros.evaluation import _evo
+
+        _evo()  # evaluation needs evo: say so now, not after the whole bag was replayed
+    try:
+        with StagedOutputs(out_dir) as stage:
+            replay = _replay_into(stage, bag, estimator, image_topic=image_topic, gt_topic=gt_topic,
+                                  camera_info_topic=camera_info_topic, odom_frame=odom_frame, base_frame=base_frame,
+                                  storage=storage, max_frames=max_frames, progress=progress, plot=plot)
+            replay.outputs = stage.commit()
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        written = Path(str(error.filename)).name if error.filename else ""  # its staging path is gone already
+        where = f" writing {written}" if written else " while writing the outputs"
+        raise NocalError(f"{out_dir}: {error.strerror or 'no space left on device'}{where}; "
+                         "partial outputs were removed and earlier results kept") from error
+    return replay
+
+
+def _topics(bag: Path) -> dict[str, tuple[str, int]]:
+    from nocal_ros.data.bags import bag_topics
+
+    return bag_topics(bag)
+
+
+def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic: str, gt_topic: str | None,
+                 camera_info_topic: str | None, odom_frame: str, base_frame: str | None, storage: str,
+                 max_frames: int | None, progress: bool, plot: bool) -> ReplayResult:
+    """The replay itself, writing every output into ``stage``."""
+    from nocal_ros.data.bags import BagWriter
+    from nocal_ros.odometry import FrameError, FrameSizeError
+
     stamps: list[int] = []
     poses_base: list[np.ndarray] = []
     poses_cam: list[np.ndarray] = []
@@ -205,7 +301,7 @@ def replay_bag(
     camera_known = estimator.model.camera is not None
     frames_in = 0
     start = time.perf_counter()
-    with BagWriter(outputs["odometry"], storage=storage, overwrite=overwrite) as writer:
+    with BagWriter(stage["odometry"], storage=storage) as writer:
         writer.declare_topic("/odom", "nav_msgs/msg/Odometry")
         writer.declare_topic("/tf", "tf2_msgs/msg/TFMessage")
         writer.declare_topic("/camera_info", "sensor_msgs/msg/CameraInfo")
@@ -236,29 +332,36 @@ def replay_bag(
             poses_base.append(result.T_odom_base)
             poses_cam.append(result.T_odom_cam)
     seconds = time.perf_counter() - start
-    stamps_ns = np.asarray(stamps, dtype=np.int64)
-    write_tum(outputs["trajectory.tum"], stamps_ns, np.asarray(poses_base).reshape(-1, 4, 4))
+    all_stamps = np.asarray(stamps, dtype=np.int64)
+    segments = time_segments(all_stamps)
+    first, last = max(segments, key=lambda segment: segment[1] - segment[0]) if segments else (0, 0)
+    if len(segments) > 1:
+        log.warning("%s: image stamps went back %d time(s), so the odometry restarted; trajectory.tum and the "
+                    "report hold the longest of the %d segments (poses %d to %d)", bag, len(segments) - 1,
+                    len(segments), first, last - 1)
+    stamps_ns = all_stamps[first:last]
+    write_tum(stage["trajectory.tum"], stamps_ns, np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
     if calibration is not None:
-        outputs["calibration.yaml"] = out_dir / "calibration.yaml"
-        calibration.save(outputs["calibration.yaml"])
+        calibration.save(stage["calibration.yaml"])
     elif estimator.model.camera is None:
         log.warning("model %s has no learnt camera: no camera_info or calibration.yaml", estimator.model_id)
 
     replay = ReplayResult(
-        out_dir=out_dir, outputs=outputs, stamps_ns=stamps_ns, T_odom_cam=np.asarray(poses_cam).reshape(-1, 4, 4),
+        out_dir=stage.out_dir, outputs={}, stamps_ns=stamps_ns,
+        T_odom_cam=np.asarray(poses_cam[first:last]).reshape(-1, 4, 4),
         frames_in=frames_in, counters=dict(vars(estimator.counters)), model_id=estimator.model_id,
         calibration_residual_px=residual, seconds=seconds,
+        extras={"poses": len(all_stamps), "time_segments": len(segments),
+                "trajectory_segment": [int(first), int(last)]},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
+        from nocal_ros.files import write_atomic
+
         replay.report = evaluate_replay(replay, truth, calibration, estimator)
-        outputs["report.json"] = out_dir / "report.json"
-        temporary = out_dir / ".report.json.tmp"
-        temporary.write_text(json.dumps(replay.report, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(temporary, outputs["report.json"])
+        write_atomic(stage["report.json"], json.dumps(replay.report, indent=2, sort_keys=True) + "\n")
         if plot and len(truth.stamps_ns) >= 2:
-            outputs["trajectory.png"] = out_dir / "trajectory.png"
-            plot_replay(replay, truth, outputs["trajectory.png"])
+            plot_replay(replay, truth, stage["trajectory.png"])
     return replay
 
 
@@ -314,7 +417,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     stamps, estimate, T_gt = _matched(replay, truth)
     report: dict[str, Any] = {
         "bag_frames": int(replay.frames_in),
-        "poses": int(len(replay.stamps_ns)),
+        "odom_poses": int(replay.extras.get("poses", len(replay.stamps_ns))),
+        "time_segments": int(replay.extras.get("time_segments", 1)),
+        "trajectory_poses": int(len(replay.stamps_ns)),
         "evaluated_poses": int(len(stamps)),
         "model": replay.model_id,
         "events": {k: int(v) for k, v in replay.counters.items()},

@@ -647,9 +647,9 @@ def _open_bag(path: Path) -> Iterator[Any]:
     except NocalError:
         raise
     except Exception as error:  # rosbags raises many kinds for corrupt and truncated files
-        raise BagError(
-            f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {type(error).__name__}: {error}"
-        ) from error
+        # One line: a YAML parser's message about a corrupt metadata.yaml spans several.
+        detail = " ".join(f"{type(error).__name__}: {error}".split())
+        raise BagError(f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {detail}") from error
 
 
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
