@@ -24,6 +24,7 @@ Weights and sidecar are never silently mixed: the sidecar carries the weights' S
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -226,7 +227,13 @@ def save_checkpoint(
         "training": training_json,
     }
     text = json.dumps(sidecar, indent=1, sort_keys=True, default=_json_default)
-    _replace_pair(path, data, text)
+    try:
+        _replace_pair(path, data, text)
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise CheckpointError(f"{path}: {error.strerror or 'no space left on device'} while saving the checkpoint; "
+                              "no partial file was left and the previous checkpoint is kept") from error
     return path
 
 
