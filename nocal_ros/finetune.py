@@ -125,6 +125,10 @@ class FinetuneConfig:
             raise ConfigError(f"tolerance_s must be a positive number, not {self.tolerance_s}")
         if self.max_frames is not None and int(self.max_frames) <= 0:
             self.max_frames = None
+        if int(self.keep_versions) < 0:
+            raise ConfigError(f"keep_versions must be 0 (keep all) or more, not {self.keep_versions}")
+        if int(self.threads) < 0:
+            raise ConfigError(f"threads must be 0 (torch's default) or more, not {self.threads}")
         if self.camera_start not in ("reset", "init"):
             raise ConfigError(f"camera_start must be reset or init, not {self.camera_start!r}")
         if not isinstance(self.training, dict):

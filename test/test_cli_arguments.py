@@ -47,6 +47,7 @@ BAD_ARGUMENTS = [
     (["eval", "--bag", "B", "--device", "bogus"], "--device"),
     (["demo", "--size", "4x4"], "--size"),
     (["bench", "--iterations", "0"], "--iterations"),
+    (["bench", "--devices", "cpu,bogus"], "--devices"),
 ]
 
 
@@ -60,6 +61,17 @@ def test_bad_values_are_one_line_naming_the_option(argv, option, capsys):
     assert len(lines) == 1, captured.err
     assert lines[0].startswith(f"nocal {argv[0]}: error: argument {option}"), lines[0]
     assert "Traceback" not in captured.err and captured.out == ""
+
+
+def test_the_trainer_nodes_settings_refuse_the_same_values(tmp_path):
+    """The node builds a FinetuneConfig from its parameters (no argparse there): the same values are refused."""
+    from nocal_ros.errors import ConfigError
+    from nocal_ros.finetune import FinetuneConfig
+
+    for bad in ({"keep_versions": -1}, {"threads": -1}, {"tolerance_s": -1.0}, {"tolerance_s": float("nan")},
+                {"steps": 0}, {"T_tool_cam": [float("inf")] * 16}):
+        with pytest.raises(ConfigError):
+            FinetuneConfig(bags=["b.mcap"], output=str(tmp_path / "store"), **bad)
 
 
 def test_good_values_still_parse():

@@ -114,3 +114,15 @@ def device_name(text: str) -> str:
     elif device.type != "cpu":
         raise ArgumentTypeError(f"unsupported device {text!r}; use auto, cpu, cuda or cuda:N")
     return text
+
+
+def device_list(text: str) -> str:
+    """``auto`` or a comma list of :func:`device_name` values (``cpu,cuda``)."""
+    if text.strip() == "auto":
+        return "auto"
+    names = [name.strip() for name in text.split(",")]
+    if not all(names) or "auto" in names:
+        raise ArgumentTypeError(f"expected auto or a comma list such as cpu,cuda, got {text!r}")
+    for name in names:
+        device_name(name)
+    return ",".join(names)

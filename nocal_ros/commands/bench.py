@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="", help="checkpoint or model store (default: the shipped model; "
                         "an untrained model of the default shape when none is shipped)")
     parser.add_argument("--untrained", action="store_true", help="time an untrained model of the default shape")
-    parser.add_argument("--devices", default="auto", help="comma list of cpu, cuda; auto = cpu and cuda when present")
+    parser.add_argument("--devices", default="auto", type=arg.device_list, help="comma list of cpu, cuda; auto = cpu and cuda when present")
     parser.add_argument("--native", default=(640, 480), type=arg.image_size, help="camera resolution fed to the estimator, WxH")
     parser.add_argument("--iterations", type=arg.positive_int, default=200, help="timed runs per figure")
     parser.add_argument("--warmup", type=arg.non_negative_int, default=20, help="untimed runs first")
