@@ -30,10 +30,17 @@ from nocal_ros.checkpoint import save_checkpoint
 from nocal_ros.model import NOCaL
 tiny = dict(encoder_channels=[8] * 7, latent_dim=16, scene_width=16, pose_width=16, hyper_width=16,
             hyper_depth=2, hyper_rank=4, lfn_width=16, lfn_layers=3, lfn_frequencies=2)
-seed = int(sys.argv[2])
-torch.manual_seed(seed)
-save_checkpoint(sys.argv[1], NOCaL(tiny), [CameraModel(32, 24)], {"training_resolution": [32, 24], "seed": seed})
+
+def save(path, seed):
+    torch.manual_seed(seed)
+    save_checkpoint(path, NOCaL(tiny), [CameraModel(32, 24)], {"training_resolution": [32, 24], "seed": seed})
+
+if __name__ == "__main__":
+    save(sys.argv[1], int(sys.argv[2]))
 """
+namespace: dict = {}
+exec(WRITER, namespace)  # the same writer in this process, for the saves that are not killed
+save = namespace["save"]
 
 
 def hooked_env(pause_at: str, pause_file: Path) -> dict:
@@ -62,7 +69,7 @@ def debris(directory: Path) -> list[str]:
 @pytest.mark.parametrize("pause_at", PAUSE_POINTS)
 def test_sigkill_inside_save_leaves_a_complete_pair(tmp_path, pause_at):
     path = tmp_path / "last.safetensors"
-    subprocess.run([sys.executable, "-c", WRITER, str(path), "1"], check=True, timeout=240)
+    save(path, 1)
     pause_file = tmp_path / "paused"
     proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path), "2"], env=hooked_env(pause_at, pause_file))
     kill_at_pause(proc, pause_file)
@@ -75,7 +82,7 @@ def test_sigkill_inside_save_leaves_a_complete_pair(tmp_path, pause_at):
         assert all(p.is_file() for p in previous_paths(path))
 
     # The next save completes the protocol and leaves no debris (no .previous pair, no temporary files).
-    subprocess.run([sys.executable, "-c", WRITER, str(path), "3"], check=True, timeout=240)
+    save(path, 3)
     assert load_checkpoint(path).metadata["metadata"]["seed"] == 3
     assert debris(tmp_path) == []
 
@@ -84,9 +91,12 @@ def test_sigkill_of_a_resumed_run_between_the_renames_keeps_it_resumable(tmp_pat
     """``nocal train`` finishes 4 steps; a ``--resume`` to 8 steps is killed while replacing
     last.safetensors, between the weights and the sidecar (the issue's lost checkpoint); a second
     ``--resume`` continues from step 4 and finishes."""
+    from nocal_ros.cli import main
+
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "nocal_ros.cli", "train", "--config", str(TINY_RECIPE), "--out", str(out), "--threads", "1"]
-    subprocess.run(command + ["--steps", "4"], check=True, capture_output=True, timeout=600)
+    arguments = ["train", "--config", str(TINY_RECIPE), "--out", str(out), "--threads", "1"]
+    command = [sys.executable, "-m", "nocal_ros.cli", *arguments]
+    assert main(arguments + ["--steps", "4"]) == 0
     assert json.loads((out / "last.json").read_text())["training"]["step"] == 4
 
     pause_file = tmp_path / "paused"
@@ -96,8 +106,7 @@ def test_sigkill_of_a_resumed_run_between_the_renames_keeps_it_resumable(tmp_pat
     assert json.loads((out / "last.json").read_text())["training"]["step"] == 4  # the old sidecar...
     assert load_checkpoint(out / "last.safetensors").training["step"] == 4  # ...and its weights, kept aside
 
-    done = subprocess.run(command + ["--steps", "8", "--resume"], capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
+    assert main(arguments + ["--steps", "8", "--resume"]) == 0
     assert load_checkpoint(out / "last.safetensors").training["step"] == 8
     assert load_checkpoint(out / "model.safetensors").metadata["config"]["steps"] == 8
     assert debris(out) == []
