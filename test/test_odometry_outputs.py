@@ -125,6 +125,28 @@ def test_full_disk_while_writing_the_bag_keeps_earlier_results(moving_bag, tmp_p
     assert tree(out) == earlier
 
 
+def test_a_failure_while_moving_outputs_into_place_puts_the_earlier_ones_back(moving_bag, tmp_path, monkeypatch, capsys):
+    import os
+
+    out = tmp_path / "out"
+    assert odometry(moving_bag, out) == 0
+    earlier = tree(out)
+    real_replace = os.replace
+    failed = []
+
+    def replace(source, destination):  # the new trajectory.tum cannot be moved into place, once
+        if not failed and ".nocal-odometry-" in str(source) and Path(destination) == out / "trajectory.tum":
+            failed.append(source)
+            raise OSError(errno.EIO, "Input/output error", str(destination))
+        return real_replace(source, destination)
+
+    monkeypatch.setattr(os, "replace", replace)
+    assert odometry(moving_bag, out, "--overwrite") == 1
+    assert failed and "Input/output error" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert tree(out) == earlier
+
+
 @pytest.fixture
 def small_tmpfs(tmp_path):
     """A 144 KiB tmpfs: room for one replay's outputs (~120 KiB) but not for a second copy beside them

@@ -194,11 +194,22 @@ class StagedOutputs:
         produced = [name for name in OUTPUT_NAMES if self[name].exists()]
         replaced = self.path / ".replaced"
         replaced.mkdir()
-        for name in OUTPUT_NAMES:  # also the ones this run does not produce: no stale report beside new results
-            if (self.out_dir / name).exists() or (self.out_dir / name).is_symlink():
-                os.replace(self.out_dir / name, replaced / name)
-        for name in produced:
-            os.replace(self[name], self.out_dir / name)
+        moved_away: list[str] = []
+        moved_in: list[str] = []
+        try:
+            for name in OUTPUT_NAMES:  # also the ones this run does not produce: no stale report beside new results
+                if (self.out_dir / name).exists() or (self.out_dir / name).is_symlink():
+                    os.replace(self.out_dir / name, replaced / name)
+                    moved_away.append(name)
+            for name in produced:
+                os.replace(self[name], self.out_dir / name)
+                moved_in.append(name)
+        except BaseException:  # undo, so the staging directory takes only this run's outputs with it
+            for name in moved_in:
+                os.replace(self.out_dir / name, self[name])
+            for name in moved_away:
+                os.replace(replaced / name, self.out_dir / name)
+            raise
         fsync_dir(self.out_dir)
         return {name: self.out_dir / name for name in produced}
 
