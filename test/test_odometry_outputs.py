@@ -7,7 +7,6 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
