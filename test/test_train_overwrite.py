@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-
 from nocal_ros.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
