@@ -245,8 +245,15 @@ def relative_pose_error_of_pairs(predicted: np.ndarray, truth: np.ndarray) -> di
 
 
 def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: bool = False) -> dict[str, Any]:
-    """APE after Umeyama alignment of the estimate to the truth (``correct_scale``: similarity, else SE(3))."""
+    """APE after Umeyama alignment of the estimate to the truth (``correct_scale``: similarity, else SE(3)).
+
+    The alignment is undefined when the positions do not span a plane (a still camera, a straight line):
+    Umeyama's cross-covariance then has rank below 2. The result says so, ``{"correct_scale",
+    "undefined": reason}`` with no error statistics, rather than raising: the other errors still stand.
+    """
     metrics, trajectory = _evo()
+    from evo.core.geometry import GeometryException
+
     estimate = _check_poses(estimate, "estimated poses")
     truth = _check_poses(truth, "true poses")
     if len(estimate) != len(truth):
@@ -255,7 +262,11 @@ def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: 
         raise ValueError(f"alignment needs at least 3 poses, got {len(truth)}")
     reference = trajectory.PosePath3D(poses_se3=list(truth))
     estimated = trajectory.PosePath3D(poses_se3=list(estimate))
-    rotation, translation, scale = estimated.align(reference, correct_scale=correct_scale)
+    try:
+        rotation, translation, scale = estimated.align(reference, correct_scale=correct_scale)
+    except GeometryException as error:
+        return {"correct_scale": bool(correct_scale),
+                "undefined": f"alignment undefined: {error} (the positions do not span a plane: still or straight-line motion)"}
     result: dict[str, Any] = {
         "correct_scale": bool(correct_scale),
         "scale": float(scale),
@@ -323,12 +334,15 @@ def format_report(report: dict[str, Any]) -> str:
     if rows:
         lines.append("odometry                        mean        std       rmse        max    count")
         for key, label in rows:
+            if report[key].get("undefined"):
+                lines.append(f"  {label:<22} {report[key]['undefined']}")
+                continue
             for unit_key, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
                 st = report[key][unit_key]
                 lines.append(
                     f"  {label + ' ' + unit:<22} {st['mean']:>10.4f} {st['std']:>10.4f} {st['rmse']:>10.4f} {st['max']:>10.4f} {st['count']:>8d}"
                 )
-        if report.get("ape_sim3"):
+        if report.get("ape_sim3") and "scale" in report["ape_sim3"]:
             lines.append(f"  Sim(3) alignment scale {report['ape_sim3']['scale']:>10.4f}")
     facts = [f"{k}: {v}" for k, v in report.items() if not isinstance(v, (dict, list)) and v is not None]
     return "\n".join(facts + lines)
@@ -367,8 +381,15 @@ def plot_trajectory(
     if len(estimate) != len(truth) or len(truth) < 3:
         raise ValueError(f"need two trajectories of the same length >= 3, got {len(estimate)} and {len(truth)} poses")
     ape = absolute_pose_error(estimate, truth, correct_scale=True)
-    alignment = np.array(ape["alignment"])
-    aligned = ape["scale"] * estimate[:, :3, 3] @ alignment[:3, :3].T + alignment[:3, 3]
+    if ape.get("undefined"):  # a still or straight-line truth: show the estimate as it is, from the shared start
+        aligned = estimate[:, :3, 3]
+        estimate_label = "estimate (not aligned: alignment undefined)"
+        position_error = np.linalg.norm(aligned - truth[:, :3, 3], axis=1)
+    else:
+        alignment = np.array(ape["alignment"])
+        aligned = ape["scale"] * estimate[:, :3, 3] @ alignment[:3, :3].T + alignment[:3, 3]
+        estimate_label = f"estimate (Sim(3) aligned, scale {ape['scale']:.3f})"
+        position_error = np.asarray(ape["translation_m_per_pose"])
     rpe = relative_pose_error(estimate, truth)
     if stamps_ns is None:
         time, time_label = np.arange(len(truth), dtype=np.float64), "frame"
@@ -380,14 +401,15 @@ def plot_trajectory(
     a, b = sorted(np.argsort(extent)[-2:])
     figure, (top, error_axis) = plt.subplots(1, 2, figsize=(11, 4.5))
     top.plot(truth[:, a, 3], truth[:, b, 3], "k-", label="truth")
-    top.plot(aligned[:, a], aligned[:, b], "r-", label=f"estimate (Sim(3) aligned, scale {ape['scale']:.3f})")
+    top.plot(aligned[:, a], aligned[:, b], "r-", label=estimate_label)
     top.plot(truth[0, a, 3], truth[0, b, 3], "ko")
     top.set_xlabel(f"{'xyz'[a]} (m)")
     top.set_ylabel(f"{'xyz'[b]} (m)")
     top.set_aspect("equal", adjustable="datalim")
     top.legend(fontsize="small")
     top.set_title("top view")
-    error_axis.plot(time, ape["translation_m_per_pose"], "b-", label="position error, Sim(3) aligned")
+    error_axis.plot(time, position_error, "b-",
+                    label="position error, " + ("unaligned" if ape.get("undefined") else "Sim(3) aligned"))
     error_axis.plot(time[1:], rpe["translation_m_per_pair"], "c-", label="RPE translation per pair")
     error_axis.set_xlabel(time_label)
     error_axis.set_ylabel("error (m)")
@@ -399,8 +421,13 @@ def plot_trajectory(
     if title:
         figure.suptitle(title)
     figure.tight_layout()
+    from nocal_ros.files import atomic_path
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
+    try:
+        with atomic_path(path) as temporary:  # a full disk leaves no half PNG
+            figure.savefig(temporary, dpi=100, format="png")
+    finally:
+        plt.close(figure)
     return path

@@ -23,6 +23,7 @@ import multiprocessing as mp
 import os
 import queue as queue_module
 import signal
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -124,6 +125,10 @@ class FinetuneConfig:
             raise ConfigError(f"tolerance_s must be a positive number, not {self.tolerance_s}")
         if self.max_frames is not None and int(self.max_frames) <= 0:
             self.max_frames = None
+        if int(self.keep_versions) < 0:
+            raise ConfigError(f"keep_versions must be 0 (keep all) or more, not {self.keep_versions}")
+        if int(self.threads) < 0:
+            raise ConfigError(f"threads must be 0 (torch's default) or more, not {self.threads}")
         if self.camera_start not in ("reset", "init"):
             raise ConfigError(f"camera_start must be reset or init, not {self.camera_start!r}")
         if not isinstance(self.training, dict):
@@ -202,9 +207,9 @@ def _initial_model_path(config: FinetuneConfig) -> Path | None:
     """The checkpoint to start from (None: the shipped default)."""
     if config.init:
         return resolve_model_path(config.init)
-    store = ModelStore(config.output)
-    latest = store.latest()
-    return latest.model_path if latest is not None else None
+    if ModelStore(config.output).latest() is None:
+        return None
+    return resolve_model_path(config.output)  # verified against its manifest, like any model loaded from a store
 
 
 class _ProgressReporter:
@@ -343,7 +348,7 @@ def training_settings(config: FinetuneConfig) -> dict:
     """
     settings: dict = {}
     if config.training_config:
-        from nocal_ros.commands.train import load_config
+        from nocal_ros.config import load_config
 
         settings = load_config(Path(os.path.expanduser(config.training_config)))
     recipe_steps = int(settings.get("steps") or 0)
@@ -394,9 +399,48 @@ def _device(name: str) -> str:
 
 # ---- worker process --------------------------------------------------------------------------
 
+#: Exit status of a worker that stopped because its owner died (nobody is left to read it).
+ORPHANED_EXIT_CODE = 75
+
+
+def exit_when_parent_dies(interval_s: float = 0.5) -> threading.Thread:
+    """Watch the process that started this one; when it is gone, end this process at once.
+
+    A worker whose owner was SIGKILLed (or died of an out-of-memory kill) must not train on unattended
+    and then publish, or prune the store, on nobody's behalf. ``daemon=True`` only covers an owner that
+    exits normally. The owner's end of the spawn pipe (``multiprocessing.parent_process().sentinel``)
+    reaches end of file when the owner dies, whatever killed it; polling ``getppid`` covers an owner
+    whose pipe a forked grandchild still holds. ``prctl(PR_SET_PDEATHSIG)`` is not used: it fires when
+    the starting *thread* exits, and a ROS node starts jobs from executor threads.
+
+    The exit is immediate (``os._exit``): the model store's commit protocol makes a kill at any moment
+    safe, so the previous ``latest`` stays, and the next writer removes the staging directory left here.
+    """
+    parent = mp.parent_process()
+    sentinel = parent.sentinel if parent is not None else None
+    parent_pid = os.getppid()
+
+    def watch() -> None:
+        from multiprocessing.connection import wait
+
+        while True:
+            if sentinel is not None:
+                if wait([sentinel], timeout=interval_s):
+                    break
+            else:
+                time.sleep(interval_s)
+            if os.getppid() != parent_pid:
+                break
+        os._exit(ORPHANED_EXIT_CODE)
+
+    thread = threading.Thread(target=watch, name="nocal-finetune-parent-watch", daemon=True)
+    thread.start()
+    return thread
+
 
 def _worker_main(config_values: dict, messages: Any, cancel: Any, log_level: int) -> None:
     """Entry point of the worker process: run the job, report everything through ``messages``."""
+    exit_when_parent_dies()
     # A terminal's Ctrl-C reaches the whole process group. The owner (CLI or node) answers it by
     # cancelling, so the worker stops between steps rather than dying mid-step of its own KeyboardInterrupt.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

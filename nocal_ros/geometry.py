@@ -126,9 +126,38 @@ def relative_transform(T_w_ci: np.ndarray, T_w_cj: np.ndarray) -> np.ndarray:
     return invert_transform(T_w_ci) @ T_w_cj
 
 
+class InvalidTransformError(ValueError):
+    """Numbers that describe no pose: a zero-length quaternion, or NaN or infinite components."""
+
+
+#: Shortest quaternion accepted as a rotation. Shorter ones are zero up to rounding: their direction,
+#: and so the rotation, is noise (an unset ``geometry_msgs/Quaternion`` is all zeros).
+MIN_QUATERNION_NORM = 1e-6
+
+
+def unit_quaternion(quaternion_xyzw: np.ndarray) -> np.ndarray:
+    """``(x, y, z, w)`` scaled to unit length.
+
+    Raises:
+        InvalidTransformError: the quaternion is not 4 finite numbers, or is (nearly) zero. Normalising
+            it would give NaN, and a NaN pose poisons every pose chained after it.
+    """
+    q = np.asarray(quaternion_xyzw, dtype=np.float64)
+    if q.shape != (4,) or not np.isfinite(q).all():
+        raise InvalidTransformError(f"quaternion (x, y, z, w) must be 4 finite numbers, got {np.asarray(quaternion_xyzw).tolist()}")
+    norm = float(np.linalg.norm(q))
+    if norm < MIN_QUATERNION_NORM:
+        raise InvalidTransformError(f"quaternion (x, y, z, w) {q.tolist()} has length {norm:.3g}: it is no rotation")
+    return q / norm
+
+
 def quaternion_to_matrix(quaternion_xyzw: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a (not necessarily unit) quaternion ``(x, y, z, w)``."""
-    x, y, z, w = np.asarray(quaternion_xyzw, dtype=np.float64) / np.linalg.norm(quaternion_xyzw)
+    """Rotation matrix of a (not necessarily unit) quaternion ``(x, y, z, w)``.
+
+    Raises:
+        InvalidTransformError: zero-length or non-finite quaternion (see :func:`unit_quaternion`).
+    """
+    x, y, z, w = unit_quaternion(quaternion_xyzw)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -136,6 +165,19 @@ def quaternion_to_matrix(quaternion_xyzw: np.ndarray) -> np.ndarray:
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
+
+
+def transform_from_translation_quaternion(translation_xyz: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 ``float64`` transform of a translation and a (not necessarily unit) quaternion ``(x, y, z, w)``,
+    as ``geometry_msgs/Pose``, ``Transform`` and the command line give them.
+
+    Raises:
+        InvalidTransformError: a non-finite translation, or a zero-length or non-finite quaternion.
+    """
+    translation = np.asarray(translation_xyz, dtype=np.float64)
+    if translation.shape != (3,) or not np.isfinite(translation).all():
+        raise InvalidTransformError(f"translation (x, y, z) must be 3 finite numbers, got {np.asarray(translation_xyz).tolist()}")
+    return make_transform(quaternion_to_matrix(quaternion_xyzw), translation)
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:

@@ -499,10 +499,9 @@ class CameraCalibration:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write a ROS ``camera_calibration`` YAML file atomically (never a half-written file)."""
-        path = Path(path)
-        temporary = path.with_name(path.name + ".tmp")
-        temporary.write_text(yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None), encoding="utf-8")
-        os.replace(temporary, path)
+        from nocal_ros.files import write_atomic
+
+        write_atomic(path, yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None))
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, CameraCalibration):

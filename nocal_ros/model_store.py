@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nocal_ros.errors import CheckpointError
+from nocal_ros.files import pause_point, pid_alive
 
 log = logging.getLogger(__name__)
 
@@ -52,20 +53,14 @@ STAGING_PREFIX = ".staging-"
 FORMAT_VERSION = 1
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
 
-# Test hook: when NOCAL_STORE_PAUSE_AT names a point of the commit sequence, the writer creates the
-# file named by NOCAL_STORE_PAUSE_FILE and sleeps there, so a test can SIGKILL a real process at a
-# known moment instead of racing it.
+# Test hook (nocal_ros.files.pause_point): when NOCAL_STORE_PAUSE_AT names one of these points of the
+# commit sequence, the writer creates the file named by NOCAL_STORE_PAUSE_FILE and sleeps there, so a
+# test can SIGKILL a real process at a known moment instead of racing it.
 PAUSE_POINTS = ("staging-written", "manifest-written", "version-renamed", "pointer-tmp-written")
 
 
 def _pause_point(name: str) -> None:
-    if os.environ.get("NOCAL_STORE_PAUSE_AT") != name:
-        return
-    signal_file = os.environ.get("NOCAL_STORE_PAUSE_FILE")
-    if signal_file:
-        Path(signal_file).write_text(name)
-    while True:  # the test kills us here
-        time.sleep(0.05)
+    pause_point("STORE", name)
 
 
 def _fsync_file(path: Path) -> None:
@@ -90,20 +85,6 @@ def _sha256(path: Path) -> str:
         for block in iter(lambda: handle.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    except OSError:
-        return False
-    return True
 
 
 def _write_json_atomic(path: Path, data: dict, pause_before_replace: str | None = None) -> None:
@@ -174,14 +155,27 @@ class ModelStore:
             raise CheckpointError(f"{manifest_path}: unreadable manifest: {error}") from error
         if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
             raise CheckpointError(f"{manifest_path}: malformed manifest")
+        model = manifest.get("model", MODEL_NAME)
+        if not _plain_file_name(model):
+            raise CheckpointError(f"{manifest_path}: model {str(model)[:80]!r} is not a file name in the version directory; refused")
+        for name, entry in manifest["files"].items():
+            if not _plain_relative_path(name) or not isinstance(entry, dict):
+                raise CheckpointError(f"{manifest_path}: file entry {str(name)[:80]!r} leaves the version directory or is malformed; refused")
+        if model not in manifest["files"]:
+            raise CheckpointError(f"{manifest_path}: the model file {model!r} has no size and SHA-256 to check it against")
         return manifest
+
+    def _check_inside(self, version_dir: Path) -> None:
+        """Refuse a version directory that is a symlink or lies outside the store."""
+        if version_dir.is_symlink() or not _inside(version_dir, self.root):
+            raise CheckpointError(f"{version_dir}: model version is a symlink or lies outside the store {self.root}; refused")
 
     def versions(self) -> list[ModelVersion]:
         """Complete versions (those with a manifest), oldest first."""
         found = []
         for entry in self.root.iterdir() if self.root.is_dir() else []:
             match = _VERSION_RE.match(entry.name)
-            if not match or not entry.is_dir():
+            if not match or not entry.is_dir() or entry.is_symlink():
                 continue
             try:
                 manifest = self._read_manifest(entry)
@@ -210,16 +204,23 @@ class ModelStore:
         if not isinstance(name, str) or not _VERSION_RE.match(name):
             raise CheckpointError(f"{self.pointer_path}: pointer names an invalid version {name!r}")
         version_dir = self.root / name
+        self._check_inside(version_dir)
         manifest = self._read_manifest(version_dir)
         version = ModelVersion(name, version_dir, manifest)
         if not version.model_path.is_file():
             raise CheckpointError(f"{version.model_path}: model file named by {self.pointer_path} is missing")
+        recorded = manifest["files"][manifest.get("model", MODEL_NAME)].get("sha256")
+        if pointer.get("sha256") not in (None, recorded) or pointer.get("model") not in (None, manifest.get("model", MODEL_NAME)):
+            raise CheckpointError(f"{self.pointer_path}: pointer and the manifest of {name} disagree on the model; refused")
         return version
 
     def verify(self, version: ModelVersion) -> None:
-        """Check every file of ``version`` against the sizes and SHA-256 in its manifest."""
+        """Check every file of ``version`` against the sizes and SHA-256 in its manifest (and that none
+        of them leaves the version directory, through a symlink or otherwise)."""
         for name, entry in version.manifest["files"].items():
             path = version.path / name
+            if not _inside(path, version.path):
+                raise CheckpointError(f"{path}: leaves model version {version.name} (a symlink out of it); refused")
             if not path.is_file():
                 raise CheckpointError(f"{path}: missing from model version {version.name}")
             if path.stat().st_size != entry.get("size") or _sha256(path) != entry.get("sha256"):
@@ -235,13 +236,13 @@ class ModelStore:
                 continue
             pid_text = entry.name[len(STAGING_PREFIX):].split("-", 1)[0]
             # Our own pid may be another thread's staging in progress; a live pid is a writer at work.
-            if pid_text.isdigit() and (int(pid_text) == os.getpid() or _pid_alive(int(pid_text))):
+            if pid_text.isdigit() and (int(pid_text) == os.getpid() or pid_alive(int(pid_text))):
                 continue
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
         for entry in self.root.glob(f".{POINTER_NAME}.*.tmp"):
             pid_text = entry.name.split(".")[3]
-            if pid_text.isdigit() and int(pid_text) != os.getpid() and not _pid_alive(int(pid_text)):
+            if pid_text.isdigit() and int(pid_text) != os.getpid() and not pid_alive(int(pid_text)):
                 entry.unlink(missing_ok=True)
                 removed.append(entry)
         return removed
@@ -342,6 +343,24 @@ def _model_file_name(version_dir: Path) -> str:
     return candidates[0]
 
 
+def _inside(path: Path, directory: Path) -> bool:
+    """True when ``path``, with every symlink resolved, lies inside ``directory`` (also resolved)."""
+    try:
+        path.resolve().relative_to(directory.resolve())
+    except (ValueError, OSError, RuntimeError):  # RuntimeError: a symlink loop
+        return False
+    return True
+
+
+def _plain_file_name(name: object) -> bool:
+    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name
+
+
+def _plain_relative_path(name: object) -> bool:
+    return isinstance(name, str) and bool(name) and not name.startswith("/") and all(
+        _plain_file_name(part) for part in name.split("/"))
+
+
 def is_store(path: str | os.PathLike) -> bool:
     """True when ``path`` is a directory laid out as a model store."""
     path = Path(path)
@@ -355,6 +374,10 @@ def resolve_model_path(path: str | os.PathLike) -> Path:
     Accepts a ``.safetensors`` file, a version directory (its manifest names the model file; or a
     directory holding ``model.safetensors``), or a store
     directory (follows ``latest.json``). Raises CheckpointError naming the path when none applies.
+
+    A model reached through a store or a version directory is verified first: no path in it may leave
+    the store (``../`` in a manifest, a version directory that is a symlink out of it), and every file
+    must match the size and SHA-256 its manifest recorded.
     """
     path = Path(path)
     if path.is_file():
@@ -363,13 +386,16 @@ def resolve_model_path(path: str | os.PathLike) -> Path:
         raise CheckpointError(f"{path}: model file or store does not exist")
     if path.is_dir():
         if (path / POINTER_NAME).exists():
-            version = ModelStore(path, create=False).latest()
+            store = ModelStore(path, create=False)
+            version = store.latest()
             assert version is not None
+            store.verify(version)
             return version.model_path
         if (path / MANIFEST_NAME).is_file():  # a version directory
             store = ModelStore(path.parent, create=False)
             version = ModelVersion(path.name, path, store._read_manifest(path))
             if version.model_path.is_file():
+                store.verify(version)
                 return version.model_path
         if (path / MODEL_NAME).is_file():
             return path / MODEL_NAME

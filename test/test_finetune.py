@@ -161,7 +161,7 @@ def field_data(tmp_path_factory):
 
     from nocal_ros.camera import CameraModel
     from nocal_ros.checkpoint import save_checkpoint
-    from nocal_ros.commands.train import load_config
+    from nocal_ros.config import load_config
     from nocal_ros.data.bags import write_sequence
     from nocal_ros.data.synthetic import random_calibration, render_sequence
     from nocal_ros.model import NOCaL

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import NocalError
 
 
@@ -32,24 +33,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="", help="checkpoint or model store (default: the shipped model; "
                         "an untrained model of the default shape when none is shipped)")
     parser.add_argument("--untrained", action="store_true", help="time an untrained model of the default shape")
-    parser.add_argument("--devices", default="auto", help="comma list of cpu, cuda; auto = cpu and cuda when present")
-    parser.add_argument("--native", default="640x480", help="camera resolution fed to the estimator, WxH")
-    parser.add_argument("--iterations", type=int, default=200, help="timed runs per figure")
-    parser.add_argument("--warmup", type=int, default=20, help="untimed runs first")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: leave torch's default)")
+    parser.add_argument("--devices", default="auto", type=arg.device_list, help="comma list of cpu, cuda; auto = cpu and cuda when present")
+    parser.add_argument("--native", default=(640, 480), type=arg.image_size, help="camera resolution fed to the estimator, WxH")
+    parser.add_argument("--iterations", type=arg.positive_int, default=200, help="timed runs per figure")
+    parser.add_argument("--warmup", type=arg.non_negative_int, default=20, help="untimed runs first")
+    parser.add_argument("--threads", type=arg.thread_count, default=0, help="torch CPU threads (0: leave torch's default)")
     parser.add_argument("--layout", default="channels_last", choices=("channels_last", "contiguous"),
                         help="memory layout of the estimator's convolutions")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise NocalError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
-    if width < 8 or height < 8:
-        raise NocalError(f"size {text!r} is too small")
-    return width, height
 
 
 def _pose_model(args: argparse.Namespace, device: torch.device):
@@ -188,7 +179,7 @@ def _pose_difference(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
 def run_bench(args: argparse.Namespace) -> dict[str, Any]:
     if args.threads:
         torch.set_num_threads(args.threads)
-    native = _size(args.native)
+    native = tuple(args.native)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.devices == "auto" else args.devices.split(",")
     report: dict[str, Any] = {
         "machine": {

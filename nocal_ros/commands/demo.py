@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import NocalError
 
 log = logging.getLogger(__name__)
@@ -36,9 +37,9 @@ def demo_camera(width: int, height: int):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("nocal_demo"), help="output directory (default: ./nocal_demo)")
     parser.add_argument("--model", default="", help="checkpoint or model store (default: the shipped model)")
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--frames", type=int, default=60, help="frames to render (10 per second)")
-    parser.add_argument("--size", default="640x480", help="demo camera resolution WxH")
+    parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda or cuda:N")
+    parser.add_argument("--frames", type=arg.positive_int, default=60, help="frames to render (10 per second)")
+    parser.add_argument("--size", default=(640, 480), type=arg.image_size, help="demo camera resolution WxH")
     parser.add_argument("--method", default="vo", choices=("vo", "pose_head"), help="see nocal odometry --help")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -60,10 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from nocal_ros.data.synthetic import render_sequence
     from nocal_ros.odometry import OdometryEstimator
 
-    try:
-        width, height = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise NocalError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
+    width, height = args.size
     if args.frames < 3:
         raise NocalError("--frames must be at least 3")
     start = time.perf_counter()

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import BagError, CheckpointError
 
 log = logging.getLogger(__name__)
@@ -34,10 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--image-topic", default="/camera/image_raw")
     parser.add_argument("--gt-topic", default="/ground_truth/pose", help="true camera poses T_w_cam")
     parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info", help="true calibration")
-    parser.add_argument("--camera-index", type=int, default=0, help="which of the checkpoint's cameras to evaluate")
-    parser.add_argument("--max-frames", type=int, default=None, help="use only the first frames")
-    parser.add_argument("--batch-size", type=int, default=32, help="pairs per pose-head call")
-    parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    parser.add_argument("--camera-index", type=arg.non_negative_int, default=0, help="which of the checkpoint's cameras to evaluate")
+    parser.add_argument("--max-frames", type=arg.positive_int, default=None, help="use only the first frames")
+    parser.add_argument("--batch-size", type=arg.positive_int, default=32, help="pairs per pose-head call")
+    parser.add_argument("--device", default="cpu", type=arg.device_name, help="cpu, cuda, cuda:N or auto")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,11 +60,11 @@ def run(args: argparse.Namespace) -> int:
 
 def write_json(path: Path, report: dict[str, Any]) -> None:
     """Write atomically: a reader (or a crash) never sees half a report."""
+    from nocal_ros.files import write_atomic
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".tmp")
-    temporary.write_text(json.dumps(report, indent=1), encoding="utf-8")
-    os.replace(temporary, path)
+    write_atomic(path, json.dumps(report, indent=1))
 
 
 def predict_consecutive_poses(

@@ -9,17 +9,27 @@ Writes into ``DIR``:
 * when the bag has ground truth: ``report.json`` (RPE and APE with and without scale alignment,
   focal and ``dr`` errors) and ``trajectory.png``.
 
-Nothing already in ``DIR`` is replaced unless ``--overwrite`` is given, and a failure half-way
-(a corrupt message, an interrupt) leaves no partial odometry bag behind.
+Nothing already in ``DIR`` is replaced unless ``--overwrite`` is given. Every output is written into
+a hidden staging directory in ``DIR`` and moved into place only once all are complete, so a failure
+half-way (a corrupt message, an interrupt, a full disk) leaves ``DIR`` exactly as it was; with
+``--overwrite``, earlier outputs this run does not produce (a report without ground truth) are removed.
+
+Stamps: ``/odom`` holds every pose in the order the frames came. When header stamps jump back, the
+estimator restarts its odom frame (``time_reset``), so the poses form several segments, each in its
+own odom frame; ``trajectory.tum`` and the report hold the longest segment (stamps strictly
+increasing; the first of equally long ones), and the report says how many segments there were.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import os
+import shutil
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from nocal_ros.errors import BagError, NocalError
-from nocal_ros.geometry import invert_transform, make_transform, matrix_to_quaternion, quaternion_to_matrix
+from nocal_ros.commands import arguments as arg
+from nocal_ros.errors import BagError, ConfigError, NocalError
+from nocal_ros.geometry import (
+    InvalidTransformError,
+    invert_transform,
+    matrix_to_quaternion,
+    transform_from_translation_quaternion,
+)
 
 log = logging.getLogger(__name__)
 
@@ -39,17 +55,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", type=Path, help="input bag (rosbag2 directory or file, or ROS 1 .bag)")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--model", default="", help="checkpoint file or model store (default: the shipped model)")
-    parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda or cuda:N")
     parser.add_argument("--image-topic", default="/camera/image_raw", help="sensor_msgs/Image or CompressedImage topic")
     parser.add_argument("--gt-topic", default="/ground_truth/pose", help="ground-truth camera poses, when the bag has them")
     parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info", help="true calibration, when the bag has it")
     parser.add_argument("--odom-frame", default="odom")
     parser.add_argument("--base-frame", default="", help="child frame of /odom (default: the images' frame id)")
     parser.add_argument(
-        "--base-to-camera", type=float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        "--base-to-camera", type=arg.finite_float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
         help="static pose of the camera optical frame in the base frame (default: identity)",
     )
-    parser.add_argument("--frame-period", type=float, default=None, help="camera frame period in s (default: from stamps)")
+    parser.add_argument("--frame-period", type=arg.positive_float, default=None, help="camera frame period in s (default: from stamps)")
     parser.add_argument("--method", default="vo", choices=("vo", "pose_head"),
                         help="vo: keyframe visual odometry calibrating the camera online (default); pose_head: the "
                              "NOCaL pose head alone, pair by pair")
@@ -60,9 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--arm-topic", default="/arm/pose",
                         help="arm poses of the camera (PoseStamped) that make the scale metric, when the bag has them; '' to ignore")
     parser.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"), help="output bag storage")
-    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many images")
+    parser.add_argument("--max-frames", type=arg.positive_int, default=None, help="stop after this many images")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--threads", type=arg.thread_count, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -75,8 +91,10 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     T_base_cam = None
     if args.base_to_camera:
-        x, y, z, qx, qy, qz, qw = args.base_to_camera
-        T_base_cam = make_transform(quaternion_to_matrix(np.array([qx, qy, qz, qw])), np.array([x, y, z]))
+        try:
+            T_base_cam = transform_from_translation_quaternion(args.base_to_camera[:3], args.base_to_camera[3:])
+        except InvalidTransformError as error:
+            raise ConfigError(f"--base-to-camera: {error}") from None
     calibration = None
     if args.calibration is not None:
         from nocal_ros.lens import CameraCalibration
@@ -114,10 +132,14 @@ class ReplayResult:
     extras: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> str:
+        poses = self.extras.get("poses", len(self.stamps_ns))
         lines = [
-            f"model {self.model_id}: {self.frames_in} frames -> {len(self.stamps_ns)} poses in {self.seconds:.1f} s "
+            f"model {self.model_id}: {self.frames_in} frames -> {poses} poses in {self.seconds:.1f} s "
             f"({1e3 * self.seconds / max(self.frames_in, 1):.1f} ms per frame)",
         ]
+        if self.extras.get("time_segments", 1) > 1:
+            lines.append(f"stamps went back: trajectory.tum and the report hold the longest of "
+                         f"{self.extras['time_segments']} segments ({len(self.stamps_ns)} poses; /odom has all {poses})")
         skipped = {k: v for k, v in self.counters.items() if k not in ("frames", "pairs") and v}
         if skipped:
             lines.append("events: " + ", ".join(f"{k} {v}" for k, v in skipped.items()))
@@ -149,15 +171,79 @@ def _check_outputs(out_dir: Path, overwrite: bool) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
+STAGING_PREFIX = ".nocal-odometry-"
+
+
+class StagedOutputs:
+    """A hidden directory in ``out_dir`` that a replay writes every output into; :meth:`commit` moves them
+    into place together (renames: no space needed), and leaving the block by an exception deletes it,
+    so ``out_dir`` keeps exactly what it held before. ``stage[name]`` is where output ``name`` goes."""
+
+    def __init__(self, out_dir: Path) -> None:
+        from nocal_ros.files import pid_alive
+
+        self.out_dir = out_dir
+        for stale in out_dir.glob(f"{STAGING_PREFIX}*"):  # left by a replay that was killed
+            pid = stale.name[len(STAGING_PREFIX):].split("-", 1)[0]
+            if pid.isdigit() and not pid_alive(int(pid)):
+                shutil.rmtree(stale, ignore_errors=True)
+        self.path = out_dir / f"{STAGING_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+    def __enter__(self) -> "StagedOutputs":
+        self.path.mkdir()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+    def __getitem__(self, name: str) -> Path:
+        return self.path / name
+
+    def commit(self) -> dict[str, Path]:
+        """Replace every earlier output in ``out_dir`` by this run's; returns the outputs' final paths."""
+        from nocal_ros.files import fsync_dir
+
+        produced = [name for name in OUTPUT_NAMES if self[name].exists()]
+        replaced = self.path / ".replaced"
+        replaced.mkdir()
+        moved_away: list[str] = []
+        moved_in: list[str] = []
+        try:
+            for name in OUTPUT_NAMES:  # also the ones this run does not produce: no stale report beside new results
+                if (self.out_dir / name).exists() or (self.out_dir / name).is_symlink():
+                    os.replace(self.out_dir / name, replaced / name)
+                    moved_away.append(name)
+            for name in produced:
+                os.replace(self[name], self.out_dir / name)
+                moved_in.append(name)
+        except BaseException:  # undo, so the staging directory takes only this run's outputs with it
+            for name in moved_in:
+                os.replace(self.out_dir / name, self[name])
+            for name in moved_away:
+                os.replace(replaced / name, self.out_dir / name)
+            raise
+        fsync_dir(self.out_dir)
+        return {name: self.out_dir / name for name in produced}
+
+
 def write_tum(path: Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
     """TUM trajectory (``stamp_s x y z qx qy qz qw``), written atomically."""
-    temporary = path.with_name(f".{path.name}.tmp")
-    with open(temporary, "w", encoding="utf-8") as handle:
-        for stamp, T in zip(stamps_ns.tolist(), poses):
-            q = matrix_to_quaternion(T[:3, :3])
-            seconds, nanos = divmod(int(stamp), 1_000_000_000)
-            handle.write(f"{seconds}.{nanos:09d} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) + "\n")
-    os.replace(temporary, path)
+    from nocal_ros.files import write_atomic
+
+    lines = []
+    for stamp, T in zip(stamps_ns.tolist(), poses):
+        q = matrix_to_quaternion(T[:3, :3])
+        seconds, nanos = divmod(int(stamp), 1_000_000_000)
+        lines.append(f"{seconds}.{nanos:09d} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q)) + "\n")
+    write_atomic(path, "".join(lines))
+
+
+def time_segments(stamps_ns: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, end)`` index ranges of ``stamps_ns`` whose stamps strictly increase: a stamp at or before
+    the one before it (time went back, so the estimator restarted its odom frame) starts a new range."""
+    breaks = (np.flatnonzero(np.diff(np.asarray(stamps_ns, dtype=np.int64)) <= 0) + 1).tolist()
+    bounds = [0, *breaks, len(stamps_ns)]
+    return [(start, end) for start, end in zip(bounds[:-1], bounds[1:]) if end > start]
 
 
 def _frames(bag: Path, image_topic: str, max_frames: int | None, progress: bool) -> Iterator[tuple[int, str, np.ndarray]]:
@@ -175,17 +261,6 @@ def _frames(bag: Path, image_topic: str, max_frames: int | None, progress: bool)
         if max_frames is not None and index >= max_frames:
             break
         yield item
-
-
-def _arm_poses(bag: Path, arm_topic: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """The bag's arm poses of the camera, ``(stamps, poses)`` sorted by stamp; empty without the topic."""
-    from nocal_ros.data.bags import bag_topics, read_pose_messages
-
-    if not arm_topic or arm_topic not in bag_topics(bag):
-        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
-    stamps, poses = read_pose_messages(bag, arm_topic)
-    order = np.argsort(stamps, kind="stable")
-    return stamps[order], poses[order]
 
 
 def replay_bag(
@@ -210,14 +285,53 @@ def replay_bag(
     Arm poses on ``arm_topic`` are handed to the estimator in stamp order, each before the first image
     at or after its stamp (as they would arrive live), to make the odometry's scale metric.
     """
-    from nocal_ros.data.bags import BagWriter
-    from nocal_ros.odometry import FrameError
-
     bag, out_dir = Path(bag), Path(out_dir)
     if not bag.exists():
         raise BagError(f"{bag}: no such bag (file or directory does not exist)")
     _check_outputs(out_dir, overwrite)
-    outputs = {"odometry": out_dir / "odometry", "trajectory.tum": out_dir / "trajectory.tum"}
+    if gt_topic and gt_topic in _topics(bag):
+        from nocal_ros.evaluation import _evo
+
+        _evo()  # evaluation needs evo: say so now, not after the whole bag was replayed
+    try:
+        with StagedOutputs(out_dir) as stage:
+            replay = _replay_into(stage, bag, estimator, image_topic=image_topic, gt_topic=gt_topic,
+                                  camera_info_topic=camera_info_topic, arm_topic=arm_topic, odom_frame=odom_frame,
+                                  base_frame=base_frame, storage=storage, max_frames=max_frames, progress=progress,
+                                  plot=plot)
+            replay.outputs = stage.commit()
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        written = Path(str(error.filename)).name if error.filename else ""  # its staging path is gone already
+        where = f" writing {written}" if written else " while writing the outputs"
+        raise NocalError(f"{out_dir}: {error.strerror or 'no space left on device'}{where}; "
+                         "partial outputs were removed and earlier results kept") from error
+    return replay
+
+
+def _topics(bag: Path) -> dict[str, tuple[str, int]]:
+    from nocal_ros.data.bags import bag_topics
+
+    return bag_topics(bag)
+
+
+def _arm_poses(bag: Path, arm_topic: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """The bag's arm poses of the camera, ``(stamps, poses)`` sorted by stamp; empty without the topic."""
+    from nocal_ros.data.bags import read_pose_messages
+
+    if not arm_topic or arm_topic not in _topics(bag):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4))
+    return read_pose_messages(bag, arm_topic)
+
+
+def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic: str, gt_topic: str | None,
+                 camera_info_topic: str | None, arm_topic: str | None, odom_frame: str, base_frame: str | None,
+                 storage: str, max_frames: int | None, progress: bool, plot: bool) -> ReplayResult:
+    """The replay itself, writing every output into ``stage``."""
+    from nocal_ros.data.bags import BagWriter
+    from nocal_ros.odometry import FrameError
+
     arm_stamps, arm_poses = _arm_poses(bag, arm_topic)
     next_arm = 0
     stamps: list[int] = []
@@ -226,7 +340,7 @@ def replay_bag(
     tracking: list[str] = []
     frames_in = 0
     start = time.perf_counter()
-    with BagWriter(outputs["odometry"], storage=storage, overwrite=overwrite) as writer:
+    with BagWriter(stage["odometry"], storage=storage) as writer:
         writer.declare_topic("/odom", "nav_msgs/msg/Odometry")
         writer.declare_topic("/tf", "tf2_msgs/msg/TFMessage")
         writer.declare_topic("/camera_info", "sensor_msgs/msg/CameraInfo")
@@ -255,30 +369,37 @@ def replay_bag(
             poses_cam.append(result.T_odom_cam)
             tracking.append(result.tracking)
     seconds = time.perf_counter() - start
-    stamps_ns = np.asarray(stamps, dtype=np.int64)
-    write_tum(outputs["trajectory.tum"], stamps_ns, np.asarray(poses_base).reshape(-1, 4, 4))
+    all_stamps = np.asarray(stamps, dtype=np.int64)
+    segments = time_segments(all_stamps)
+    first, last = max(segments, key=lambda segment: segment[1] - segment[0]) if segments else (0, 0)
+    if len(segments) > 1:
+        log.warning("%s: image stamps went back %d time(s), so the odometry restarted; trajectory.tum and the "
+                    "report hold the longest of the %d segments (poses %d to %d)", bag, len(segments) - 1,
+                    len(segments), first, last - 1)
+    stamps_ns = all_stamps[first:last]
+    write_tum(stage["trajectory.tum"], stamps_ns, np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
     calibration = residual = None
     if frames_in:
-        calibration, residual = estimator.camera_info()
-        outputs["calibration.yaml"] = out_dir / "calibration.yaml"
-        calibration.save(outputs["calibration.yaml"])
+        calibration, residual = estimator.camera_info()  # the online camera at the end of the bag
+        calibration.save(stage["calibration.yaml"])
 
     replay = ReplayResult(
-        out_dir=out_dir, outputs=outputs, stamps_ns=stamps_ns, T_odom_cam=np.asarray(poses_cam).reshape(-1, 4, 4),
+        out_dir=stage.out_dir, outputs={}, stamps_ns=stamps_ns,
+        T_odom_cam=np.asarray(poses_cam[first:last]).reshape(-1, 4, 4),
         frames_in=frames_in, counters=dict(vars(estimator.counters)), model_id=estimator.model_id,
         calibration_residual_px=residual, seconds=seconds,
-        extras={"tracking": tracking, "calibration": calibration, "calibration_status": estimator.calibration_status()},
+        extras={"poses": len(all_stamps), "time_segments": len(segments),
+                "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
+                "calibration_status": estimator.calibration_status()},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
+        from nocal_ros.files import write_atomic
+
         replay.report = evaluate_replay(replay, truth, calibration, estimator)
-        outputs["report.json"] = out_dir / "report.json"
-        temporary = out_dir / ".report.json.tmp"
-        temporary.write_text(json.dumps(replay.report, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(temporary, outputs["report.json"])
+        write_atomic(stage["report.json"], json.dumps(replay.report, indent=2, sort_keys=True) + "\n")
         if plot and len(truth.stamps_ns) >= 2:
-            outputs["trajectory.png"] = out_dir / "trajectory.png"
-            plot_replay(replay, truth, outputs["trajectory.png"])
+            plot_replay(replay, truth, stage["trajectory.png"])
     return replay
 
 
@@ -334,7 +455,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     stamps, estimate, T_gt = _matched(replay, truth)
     report: dict[str, Any] = {
         "bag_frames": int(replay.frames_in),
-        "poses": int(len(replay.stamps_ns)),
+        "odom_poses": int(replay.extras.get("poses", len(replay.stamps_ns))),
+        "time_segments": int(replay.extras.get("time_segments", 1)),
+        "trajectory_poses": int(len(replay.stamps_ns)),
         "evaluated_poses": int(len(stamps)),
         "model": replay.model_id,
         "events": {k: int(v) for k, v in replay.counters.items()},

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import BagError, ConfigError
 from nocal_ros.lens import CameraCalibration
 
@@ -24,16 +25,6 @@ DEFAULT_CAMERA = CameraCalibration(
 )
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 160x120, got {text!r}") from None
-    if width < 8 or height < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
-    return width, height
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output bag (a rosbag2 directory)")
     parser.add_argument("--camera", type=Path, default=None,
@@ -41,22 +32,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "k1=-0.25 k2=0.08; see config/cameras/)")
     parser.add_argument("--random-camera", action="store_true",
                         help="draw a random plumb_bob camera from --seed instead (see synthetic.random_calibration)")
-    parser.add_argument("--size", type=parse_size, default=None, metavar="WxH",
+    parser.add_argument("--size", type=arg.image_size, default=None, metavar="WxH",
                         help="render at this size; the camera's intrinsics are scaled to it (same field of view)")
-    parser.add_argument("--frames", type=int, default=200, help="number of frames (default 200)")
-    parser.add_argument("--fps", type=float, default=10.0, help="frame rate in Hz; sets the stamps (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="scene, trajectory and labelling seed (default 0)")
+    parser.add_argument("--frames", type=arg.positive_int, default=200, help="number of frames (default 200)")
+    parser.add_argument("--fps", type=arg.positive_float, default=10.0, help="frame rate in Hz; sets the stamps (default 10)")
+    parser.add_argument("--seed", type=arg.non_negative_int, default=0, help="scene, trajectory and labelling seed (default 0)")
     parser.add_argument("--split", choices=("train", "test"), default="train",
                         help="texture set: train and test scenes share no textures (default train)")
-    parser.add_argument("--supersample", type=int, default=1, metavar="K",
+    parser.add_argument("--supersample", type=arg.positive_int, default=1, metavar="K",
                         help="average KxK rays per pixel (anti-aliasing; cost grows as K^2; default 1)")
-    parser.add_argument("--labelled-fraction", type=float, default=0.1,
+    parser.add_argument("--labelled-fraction", type=arg.fraction, default=0.1,
                         help="share of frames with an /arm/pose (default 0.1)")
-    parser.add_argument("--speed", type=float, default=0.3, help="RMS camera speed in m/s (default 0.3)")
-    parser.add_argument("--angular-speed", type=float, default=20.0, help="RMS angular speed in deg/s (default 20)")
+    parser.add_argument("--speed", type=arg.non_negative_float, default=0.3, help="RMS camera speed in m/s (default 0.3)")
+    parser.add_argument("--angular-speed", type=arg.non_negative_float, default=20.0, help="RMS angular speed in deg/s (default 20)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("--threads", type=arg.thread_count, default=None,
                         help="torch CPU threads for rendering (default: torch's choice; 1 suits busy shared machines)")
 
 
@@ -66,16 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.exists() and not args.overwrite:
         raise BagError(f"{args.out}: already exists (use --overwrite to replace it)")
-    if args.frames < 1:
-        raise ConfigError(f"--frames must be >= 1, got {args.frames}")
-    if args.fps <= 0 or args.supersample < 1 or not 0 <= args.labelled_fraction <= 1:
-        raise ConfigError("--fps must be > 0, --supersample >= 1 and --labelled-fraction in [0, 1]")
-    if args.speed < 0 or args.angular_speed < 0:
-        raise ConfigError("--speed and --angular-speed must be non-negative")
-
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+    if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)

@@ -4,7 +4,8 @@ Pretraining (no ``--init``) trains on bags or on the config's rendered ``synthet
 process or under ``torchrun --nproc_per_node N`` with DistributedDataParallel (gloo on CPU, nccl on
 GPU). It writes ``metrics.csv``, a resumable ``last.safetensors`` and the final ``model.safetensors``
 (each with its JSON sidecar) into ``--out``. Ctrl-C stops at the next step and leaves a resumable
-checkpoint (``--resume`` continues it exactly).
+checkpoint (``--resume`` continues it exactly). An ``--out`` that already holds a run is refused unless
+``--resume`` continues it or ``--overwrite`` deletes it first.
 
 Fine-tuning (``--init MODEL --bag BAG ...``) is field re-calibration: exactly the job the trainer node
 runs (``nocal_ros.finetune.FinetuneJob``, in a worker process). ``--out`` is then a model store: the
@@ -17,12 +18,13 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import signal
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from nocal_ros.commands import arguments as arg
+from nocal_ros.config import load_config
 from nocal_ros.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -49,12 +51,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path,
                         help="output directory (default: runs/<config name>); with --init the model store to publish to")
     parser.add_argument("--resume", action="store_true", help="continue pretraining exactly from OUT/last.safetensors")
-    parser.add_argument("--steps", type=int, help="override the config's number of steps")
-    parser.add_argument("--seed", type=int, help="override the config's seed")
-    parser.add_argument("--bench", type=int, metavar="N",
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the training run already in --out (its model, last checkpoint, metrics and "
+                             "TensorBoard logs are deleted first); without it or --resume such an --out is refused")
+    parser.add_argument("--steps", type=arg.positive_int, help="override the config's number of steps")
+    parser.add_argument("--seed", type=arg.non_negative_int, help="override the config's seed")
+    parser.add_argument("--bench", type=arg.positive_int, metavar="N",
                         help="time N optimisation steps (after 5 warm-up steps) and print the figures; trains nothing")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
-    parser.add_argument("--device", default="auto", help="auto, cpu, cuda, cuda:1, ...")
+    parser.add_argument("--threads", type=arg.thread_count, help="torch CPU threads (default or 0: torch's choice)")
+    parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda, cuda:1, ...")
     bags = parser.add_argument_group("bags")
     bags.add_argument("--image-topic", default="/camera/image_raw")
     bags.add_argument("--pose-topic", default="/arm/pose", help="arm poses (PoseStamped) for --pose-source pose")
@@ -62,26 +67,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="auto: the pose topic if present, else TF, else none (unlabelled: scale not metric)")
     bags.add_argument("--tf-parent", default="base", help="TF edge parent -> child for --pose-source tf")
     bags.add_argument("--tf-child", default="tool")
-    bags.add_argument("--hand-eye", type=float, nargs=16, metavar="T", help="T_tool_cam, row-major 4x4 (default identity)")
-    bags.add_argument("--tolerance", type=float, default=0.02, help="seconds between an image and its arm pose")
-    bags.add_argument("--max-frames", type=int, help="read at most this many frames per bag")
+    bags.add_argument("--hand-eye", type=arg.finite_float, nargs=16, metavar="T", help="T_tool_cam, row-major 4x4 (default identity)")
+    bags.add_argument("--tolerance", type=arg.positive_float, default=0.02, help="seconds between an image and its arm pose")
+    bags.add_argument("--max-frames", type=arg.positive_int, help="read at most this many frames per bag")
     finetune = parser.add_argument_group("fine-tuning (--init)")
     finetune.add_argument("--camera-start", default="reset", choices=("reset", "init"),
                           help="reset: f = width, centred principal point (a new camera); init: the model's camera of the same size")
-    finetune.add_argument("--keep", type=int, default=5, help="versions kept in the store (0: all)")
-
-
-def load_config(path: Path) -> dict[str, Any]:
-    """The YAML file as a dict; ConfigError naming the file when it is missing or malformed."""
-    try:
-        config = yaml.safe_load(Path(path).read_text())
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read config ({error.strerror})") from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(error).split())})") from None
-    if not isinstance(config, dict):
-        raise ConfigError(f"{path}: config must be a mapping of training settings")
-    return config
+    finetune.add_argument("--keep", type=arg.non_negative_int, default=5, help="versions kept in the store (0: all)")
 
 
 def synthetic_sequences(section: dict[str, Any] | None, source: str) -> list:
@@ -139,8 +131,10 @@ def run(args: argparse.Namespace) -> int:
         raw["seed"] = args.seed
     config = training_config(raw, source=source)
     out_dir = args.out or Path("runs") / args.config.stem
-    distributed = _init_distributed(args.device)
     rank = int(os.environ.get("RANK", "0"))
+    if not args.bench:
+        prepare_run_dir(out_dir, resume=args.resume, overwrite=args.overwrite, remove=rank == 0)
+    distributed = _init_distributed(args.device)
     try:
         if args.bag:
             from nocal_ros.data.bags import read_sequence
@@ -193,6 +187,41 @@ def run(args: argparse.Namespace) -> int:
             torch.distributed.destroy_process_group()
 
 
+#: What a pretraining run writes into --out (``training.train``), and the pair a save may keep aside.
+RUN_OUTPUTS = ("model.safetensors", "model.json", "last.safetensors", "last.json", "metrics.csv", "tensorboard")
+
+
+def prepare_run_dir(out_dir: Path, resume: bool, overwrite: bool, remove: bool = True) -> None:
+    """Refuse to train into a directory that holds a run unless asked to ``resume`` it or ``overwrite`` it.
+
+    ``overwrite`` deletes the earlier run's outputs before training starts (``remove``: on rank 0 only),
+    so a failed new run never leaves the old model beside new metrics.
+    """
+    from nocal_ros.checkpoint import previous_paths
+
+    if resume and overwrite:
+        raise ConfigError("give --resume (continue the run in --out) or --overwrite (replace it), not both")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"{out_dir}: exists and is not a directory")
+    names = list(RUN_OUTPUTS)
+    for checkpoint_name in ("model.safetensors", "last.safetensors"):
+        names += [p.name for p in previous_paths(out_dir / checkpoint_name)]
+    existing = [name for name in names if (out_dir / name).exists()]
+    if not existing or resume:
+        return
+    if not overwrite:
+        raise ConfigError(f"{out_dir}: already holds a training run ({', '.join(existing)}); "
+                          "pass --resume to continue it or --overwrite to replace it")
+    if remove:
+        for name in existing:
+            target = out_dir / name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            else:
+                target.unlink()
+        log.info("--overwrite: removed the earlier run's %s from %s", ", ".join(existing), out_dir)
+
+
 def bag_options(args: argparse.Namespace) -> dict[str, Any]:
     """``read_sequence`` keyword arguments from the command line's bag options."""
     import numpy as np
@@ -216,6 +245,9 @@ def finetune_config(args: argparse.Namespace):
     if args.resume:
         raise ConfigError("--resume continues pretraining; a fine-tuning run (--init) is not resumable: "
                           "a cancelled run kept the previous model, so start it again")
+    if args.overwrite:
+        raise ConfigError("--overwrite replaces a pretraining run; fine-tuning (--init) adds a version to the "
+                          "model store --out and never replaces one (--keep prunes old versions)")
     if args.bench:
         raise ConfigError("--bench times pretraining steps; leave out --init")
     if not args.bag:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import logging
 import os
 import shutil
 import uuid
@@ -30,12 +31,14 @@ import numpy as np
 from nocal_ros.data.sequence import FrameSequence
 from nocal_ros.errors import BagError, NocalError
 from nocal_ros.geometry import (
+    InvalidTransformError,
     interpolate_transform,
     invert_transform,
-    make_transform,
     matrix_to_quaternion,
-    quaternion_to_matrix,
+    transform_from_translation_quaternion,
 )
+
+log = logging.getLogger(__name__)
 
 STORAGES = ("mcap", "sqlite3", "ros1")
 
@@ -176,17 +179,18 @@ def stamp_to_ns(stamp: Any) -> int:
 
 
 def pose_msg_to_matrix(pose: Any) -> np.ndarray:
-    """``geometry_msgs/Pose`` -> 4x4."""
+    """``geometry_msgs/Pose`` -> 4x4; InvalidTransformError for a zero or non-finite quaternion."""
     q = pose.orientation
     p = pose.position
-    return make_transform(quaternion_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([p.x, p.y, p.z]))
+    return transform_from_translation_quaternion(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
 
 
 def transform_msg_to_matrix(transform: Any) -> np.ndarray:
-    """``geometry_msgs/Transform`` -> 4x4."""
+    """``geometry_msgs/Transform`` -> 4x4 (bags and the nodes' TF lookups); InvalidTransformError for a
+    zero or non-finite quaternion or translation."""
     q = transform.rotation
     t = transform.translation
-    return make_transform(quaternion_to_matrix(np.array([q.x, q.y, q.z, q.w])), np.array([t.x, t.y, t.z]))
+    return transform_from_translation_quaternion(np.array([t.x, t.y, t.z]), np.array([q.x, q.y, q.z, q.w]))
 
 
 def camera_info_to_calibration(msg: Any):
@@ -541,6 +545,11 @@ class PoseTrack:
             self._stamps = list(by_stamp)
             self._poses = list(by_stamp.values())
 
+    def samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(stamps_ns (N,) int64, poses (N, 4, 4))`` sorted by stamp, one per stamp."""
+        self._sorted()
+        return np.asarray(self._stamps, dtype=np.int64), np.asarray(self._poses, dtype=np.float64).reshape(-1, 4, 4)
+
     def at(self, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
         self._sorted()
         stamps = self._stamps
@@ -562,12 +571,17 @@ class TfBuffer:
         self.dynamic: dict[tuple[str, str], PoseTrack] = {}
         self.static: dict[tuple[str, str], np.ndarray] = {}
         self._parent_of: dict[str, str] = {}
+        self.invalid_samples = 0  # transforms with a zero or non-finite quaternion or translation: skipped
 
     def add(self, msg: Any, is_static: bool) -> None:
         for stamped in msg.transforms:
             parent = stamped.header.frame_id.lstrip("/")
             child = stamped.child_frame_id.lstrip("/")
-            T = transform_msg_to_matrix(stamped.transform)
+            try:
+                T = transform_msg_to_matrix(stamped.transform)
+            except InvalidTransformError:
+                self.invalid_samples += 1
+                continue
             self._parent_of.setdefault(child, parent)
             if is_static:
                 self.static[(parent, child)] = T
@@ -638,9 +652,9 @@ def _open_bag(path: Path) -> Iterator[Any]:
     except NocalError:
         raise
     except Exception as error:  # rosbags raises many kinds for corrupt and truncated files
-        raise BagError(
-            f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {type(error).__name__}: {error}"
-        ) from error
+        # One line: a YAML parser's message about a corrupt metadata.yaml spans several.
+        detail = " ".join(f"{type(error).__name__}: {error}".split())
+        raise BagError(f"{path}: cannot read the bag (corrupt, truncated or not a rosbag): {detail}") from error
 
 
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
@@ -713,15 +727,33 @@ def _pose_from_msg(msg: Any, msgtype: str) -> np.ndarray:
     return transform_msg_to_matrix(msg.transform)
 
 
+def _add_pose(track: PoseTrack, msg: Any, msgtype: str, bag_stamp_ns: int) -> bool:
+    """Add a pose message's sample to ``track``; False (nothing added) when it is no pose.
+
+    A zero or non-finite quaternion (an unset orientation, a driver glitch) is skipped rather than
+    refusing the bag: interpolation then bridges it from the samples around it, within the tolerance.
+    """
+    try:
+        track.add(_header_stamp(msg, bag_stamp_ns), _pose_from_msg(msg, msgtype))
+    except InvalidTransformError:
+        return False
+    return True
+
+
+def _warn_invalid_poses(path: Path, count: int) -> None:
+    if count:
+        log.warning("%s: skipped %d pose sample(s) with a zero or non-finite quaternion or position", path, count)
+
+
 def read_pose_messages(path: str | Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """Every pose on ``topic`` (PoseStamped, PoseWithCovarianceStamped or TransformStamped) as
-    ``(stamps_ns (N,) int64, poses (N, 4, 4))`` in the bag's order, header stamps.
+    ``(stamps_ns (N,) int64, poses (N, 4, 4))`` in the bag's order, header stamps. Samples that are no
+    pose (a zero or non-finite quaternion or position) are skipped, with a warning that counts them.
 
     Reads that one topic only, without decoding images.
     """
     path = _check_path(path)
-    stamps: list[int] = []
-    poses: list[np.ndarray] = []
+    track = PoseTrack()
     with _open_bag(path) as reader:
         info = reader.topics.get(topic)
         if info is None:
@@ -729,11 +761,12 @@ def read_pose_messages(path: str | Path, topic: str) -> tuple[np.ndarray, np.nda
         if info.msgtype not in POSE_TYPES:
             raise BagError(f"{path}: topic {topic} holds {info.msgtype}, not one of {', '.join(POSE_TYPES)}")
         connections = [c for c in reader.connections if c.topic == topic]
+        invalid = 0
         for connection, bag_stamp, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, connection.msgtype)
-            stamps.append(_header_stamp(msg, bag_stamp))
-            poses.append(_pose_from_msg(msg, connection.msgtype))
-    return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+            invalid += not _add_pose(track, msg, connection.msgtype, bag_stamp)
+    _warn_invalid_poses(path, invalid)
+    return track.samples()
 
 
 def read_poses(
@@ -848,6 +881,7 @@ def read_sequence(
     ground_truth = PoseTrack()
     tf = TfBuffer()
     camera_info = None
+    invalid_poses = 0
     with _open_bag(path) as reader:
         topics = reader.topics
         image_connections = _image_connections(reader, path, image_topic)
@@ -887,7 +921,7 @@ def read_sequence(
             else:
                 msg = reader.deserialize(raw, msgtype)
                 track = arm if (use_pose_topic and topic == pose_topic) else ground_truth
-                track.add(_header_stamp(msg, bag_stamp), _pose_from_msg(msg, msgtype))
+                invalid_poses += not _add_pose(track, msg, msgtype, bag_stamp)
         if not images:
             raise BagError(f"{path}: no usable frames: topic {image_topic} has no messages")
 
@@ -921,7 +955,10 @@ def read_sequence(
 
     calibration = None
     native_size = decode.native_size
-    extras = {"native_size": native_size, "dropped_repeated_stamps": int((~keep).sum())}
+    invalid_poses += tf.invalid_samples
+    _warn_invalid_poses(path, invalid_poses)
+    extras = {"native_size": native_size, "dropped_repeated_stamps": int((~keep).sum()),
+              "invalid_pose_samples": int(invalid_poses)}
     if camera_info is not None:
         try:
             calibration = camera_info_to_calibration(camera_info)

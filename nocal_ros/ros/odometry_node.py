@@ -46,6 +46,7 @@ from std_srvs.srv import Trigger
 from tf2_ros import Buffer, TransformBroadcaster, TransformException, TransformListener
 
 from nocal_ros.errors import NocalError
+from nocal_ros.geometry import InvalidTransformError
 from nocal_ros.odometry import FrameMailbox, OdometryEstimator
 from nocal_ros.ros.conversions import (
     camera_info_message,
@@ -196,7 +197,15 @@ class OdometryNode(Node):
                     throttle_duration_sec=5.0,
                 )
                 return None
-            T = transform_msg_to_matrix(transform.transform)
+            try:
+                T = transform_msg_to_matrix(transform.transform)
+            except InvalidTransformError as error:  # a zero quaternion would make every pose NaN
+                self._waiting_for_tf += 1
+                self.get_logger().error(
+                    f"TF {base} -> {camera_frame} is no transform ({error}); frames are skipped until it is fixed",
+                    throttle_duration_sec=5.0,
+                )
+                return None
             self._T_base_cam[camera_frame] = T
         return T
 
