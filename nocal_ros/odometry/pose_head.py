@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from nocal_ros.errors import NocalError
+from nocal_ros.network_input import network_input
 
 log = logging.getLogger(__name__)
 
@@ -180,13 +180,10 @@ class PoseRunner:
             self.graphs = None
 
     def load_frame(self, image: np.ndarray) -> int:
-        """Resize a native RGB frame into the next slot; returns the slot."""
+        """Map a native RGB frame onto the network's input in the next slot; returns the slot."""
         slot = 1 - self.current
-        if image.shape[1] != self.width or image.shape[0] != self.height:
-            # INTER_AREA averages the pixels each output pixel covers, like the training data's resize.
-            cv2.resize(image, (self.width, self.height), dst=self.host[slot].numpy(), interpolation=cv2.INTER_AREA)
-        else:
-            self.host[slot].numpy()[...] = image
+        # The training data's map (centred crop to the network's aspect ratio, INTER_AREA), for any frame shape.
+        network_input(image, (self.width, self.height), out=self.host[slot].numpy())
         self.frames[slot].copy_(self.host[slot], non_blocking=self.cuda)
         self.current = slot
         return slot

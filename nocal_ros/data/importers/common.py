@@ -71,7 +71,7 @@ class Recording:
         return self.length
 
     def note(self, text: str) -> None:
-        log.info("%s: %s", self.name, text)
+        log.debug("%s: %s", self.name, text)
         self.notes.append(text)
 
 
