@@ -77,7 +77,7 @@ def read_kitti_poses(path: Path) -> np.ndarray:
 
 
 def _find_poses(src: Path) -> Path | None:
-    candidates = [src / "poses.txt", src.parent.parent / "poses" / f"{src.name}.txt", src / "poses" / f"{src.name}.txt"]
+    candidates = [src / "poses.txt", src.parent.parent / "poses" / f"{src.name}.txt"]
     return next((path for path in candidates if path.is_file()), None)
 
 
@@ -132,6 +132,8 @@ def open_kitti(
                 raise DatasetError(f"{times}:{line}: expected one time in seconds, got {len(fields)} fields")
         stamps = check_increasing(times, [line for line, _ in rows],
                                   [FIRST_STAMP_NS + seconds_to_ns(times, line, fields[0]) for line, fields in rows])
+        if rate is not None:
+            notes.append(f"--rate ignored: {times} gives the stamps")
     else:
         rate = DEFAULT_RATE_HZ if rate is None else float(rate)
         stamps = rate_stamps(len(files), rate)
