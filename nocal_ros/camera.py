@@ -3,10 +3,10 @@
 Conventions (DESIGN.md, docs/INTERFACES.md):
 
 * Intrinsics live at the NATIVE image resolution. A lower training resolution ``(w, h)`` is served by
-  mapping its pixel centres to native pixel coordinates with :mod:`nocal_ros.network_input` (for a
-  frame of the same aspect ratio ``u_native = (u_train + 0.5) * W / w - 0.5``; another aspect ratio is
-  centre-cropped first), so one model serves every training size and camera shape, and the learnt
-  values never need rescaling.
+  mapping its pixel centres to native pixel coordinates with :mod:`nocal_ros.network_input`,
+  ``u_native = (u_train + 0.5) * W / w - 0.5`` and ``v_native = (v_train + 0.5) * H / h - 0.5`` (each
+  axis its own scale, so any aspect ratio), so one model serves every training size and camera shape,
+  and the learnt values never need rescaling.
 * A pixel ``(u, v)`` is addressed at its centre (OpenCV). Distorted normalised coordinates are
   ``x_d = (u - cx) / fx``, ``y_d = (v - cy) / fy``. The distortion MLP takes centred native pixel
   coordinates scaled to ``[-1, 1]`` (image edges at +-1, independent of the learnt principal point so
@@ -242,8 +242,8 @@ class CameraModel(nn.Module):
         """Native pixel coordinates ``(u, v)`` ``(h * w,)`` of the pixel centres of a ``w x h`` network image.
 
         The network image is the native frame mapped by :func:`nocal_ros.network_input.network_input`
-        (a centred crop to ``w:h``, area-resized); this is the same map, so each network pixel gets
-        the ray of the native pixels it shows, for a camera of any aspect ratio.
+        (the whole frame, area-resized); this is the same map, so each network pixel gets the ray of
+        the native pixels it shows, for a camera of any aspect ratio.
         """
         dtype = self.log_fx_rel.dtype
         device = self.log_fx_rel.device

@@ -1,7 +1,7 @@
-"""Cameras of any shape: the one map from native frames to the network's input (a centred crop to its
-aspect ratio, area-resized), checked against OpenCV; the odometry and the training see the same
-network image; `nocal synth` renders non-4:3 cameras with square pixels; `nocal train` pretrains and
-fine-tunes on non-4:3 mono8 and colour bags."""
+"""Cameras of any shape: the one map from native frames to the network's input (the whole frame,
+area-resized, each axis at its own scale), checked against OpenCV; the odometry and the training see
+the same network image; `nocal synth` renders non-4:3 cameras with square pixels; `nocal train`
+pretrains and fine-tunes on non-4:3 mono8 and colour bags."""
 
 from __future__ import annotations
 
@@ -28,20 +28,19 @@ REPO = Path(__file__).resolve().parents[1]
 NETWORK = (80, 60)
 
 
-@pytest.mark.parametrize(("native", "window"), [
-    ((1241, 376), (370, 0, 501, 376)),  # KITTI: the middle 501 columns (376 * 4 / 3 = 501.3)
-    ((1280, 720), (160, 0, 960, 720)),  # 16:9
-    ((640, 512), (0, 16, 640, 480)),  # 5:4: the middle 480 rows
-    ((640, 480), (0, 0, 640, 480)),  # 4:3: the whole frame, a plain resize
-    ((80, 60), (0, 0, 80, 60)),
+@pytest.mark.parametrize(("native", "scale"), [
+    ((1241, 376), (15.5125, 6.266666666666667)),  # KITTI: 3.3:1 onto 4:3, each axis its own scale
+    ((1280, 720), (16.0, 12.0)),
+    ((640, 512), (8.0, 8.533333333333333)),
+    ((640, 480), (8.0, 8.0)),  # 4:3: a plain resize
+    ((60, 45), (0.75, 0.75)),  # smaller than the network: enlarged
 ])
-def test_the_crop_window_of_each_camera_shape(native, window):
+def test_the_map_covers_the_whole_frame(native, scale):
     mapping = input_mapping(native, NETWORK)
-    assert mapping.window == window
-    x0, y0, width, height = window
-    # centred to within a pixel, of the network's aspect to within half a native pixel
-    assert abs((x0 + width / 2) - native[0] / 2) <= 0.5 and abs((y0 + height / 2) - native[1] / 2) <= 0.5
-    assert abs(width - height * 4 / 3) <= 0.5 or abs(height - width * 3 / 4) <= 0.5
+    assert mapping.window == (0, 0, *native) and mapping.scale == pytest.approx(scale, rel=1e-12)
+    # the outer network pixel edges are the outer native pixel edges
+    assert mapping.to_native(-0.5, -0.5) == pytest.approx((-0.5, -0.5))
+    assert mapping.to_native(79.5, 59.5) == pytest.approx((native[0] - 0.5, native[1] - 0.5))
 
 
 @pytest.mark.parametrize("native", [(1241, 376), (1280, 720), (640, 512), (320, 240), (60, 45)])
@@ -103,10 +102,10 @@ def test_rays_of_network_pixels_are_the_rays_of_their_native_pixels(native):
     angle = np.arccos(np.clip((rays * reference).sum(1), -1, 1))
     assert angle.max() < 1.5e-3  # radians; ~1 native pixel at this focal
 
-    # The check can fail: a stretch of the whole frame (the old map) gives other rays for these pixels.
-    stretch = InputMapping(native, NETWORK, (0, 0, width, height))
-    su, sv = stretch.to_native(un.numpy(), vn.numpy())
-    assert np.arccos(np.clip((undistort_rays(lens, su, sv) * reference).sum(1), -1, 1)).max() > 10 * 1.5e-3
+    # The check can fail: the pixel-corner convention (u * W / w, half a network pixel off) gives other rays.
+    corner = InputMapping(native, NETWORK, (0, 0, width, height))
+    cu, cv = corner.to_native(un.numpy() - 0.5, vn.numpy() - 0.5)
+    assert np.arccos(np.clip((undistort_rays(lens, cu + 0.5, cv + 0.5) * reference).sum(1), -1, 1)).max() > 3 * 1.5e-3
 
 
 @pytest.mark.parametrize(("native", "mono"), [((1241, 376), True), ((1280, 720), False), ((640, 512), False)])
@@ -126,8 +125,8 @@ def test_odometry_and_training_see_the_same_network_image(native, mono):
     expected, mapping = network_input(rgb[1], NETWORK)
     np.testing.assert_array_equal(odometry_image, expected)
     np.testing.assert_array_equal(training_image, expected)
-    x0, y0, w, h = mapping.window  # and it is the crop, area-resized
-    np.testing.assert_array_equal(expected, cv2.resize(rgb[1][y0:y0 + h, x0:x0 + w], NETWORK, interpolation=cv2.INTER_AREA))
+    # and it is the whole frame, area-resized
+    np.testing.assert_array_equal(expected, cv2.resize(rgb[1], NETWORK, interpolation=cv2.INTER_AREA))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -695,7 +695,7 @@ class _FrameChecker:
             )
         self.count += 1
         if self.resize is not None and size != self.resize:
-            if self.network:  # what the network is fed: the crop to its aspect ratio, resized
+            if self.network:  # what the network is fed (nocal_ros.network_input)
                 from nocal_ros.network_input import network_input
 
                 rgb = network_input(rgb, self.resize)[0]
@@ -824,8 +824,8 @@ def read_sequence(
             scaled to match and ``extras["native_size"]`` keeps the recorded size.
         max_frames: keep only the first images.
         network_size: ``(width, height)`` of a network's input: frames are mapped onto it as training
-            and the odometry map them (:func:`nocal_ros.network_input.network_input`: a centred crop to
-            its aspect ratio, then a resize); the calibration stays at native resolution. Not with ``resize``.
+            and the odometry map them (:func:`nocal_ros.network_input.network_input`); the calibration
+            stays at native resolution. Not with ``resize``.
 
     Stamps are the images' header stamps, sorted; frames with a repeated stamp are dropped.
     """

@@ -2,8 +2,8 @@
 
 Each sequence is one camera (its index in the list is the pair's ``camera_index``, which selects the
 camera model the trainer learns for it). Images are mapped to the training size once, at construction,
-by :func:`nocal_ros.network_input.network_input` (a centred crop to the training aspect ratio, then
-``cv2.INTER_AREA``: the same map the camera's rays use, so any camera shape trains) and kept as one
+by :func:`nocal_ros.network_input.network_input` (the whole frame, ``cv2.INTER_AREA``: the same map
+the camera's rays use, so any camera shape trains) and kept as one
 uint8 tensor per sequence, so drawing a batch is indexing and one conversion to float, never a resize.
 
 A pair is labelled when both frames have arm poses; its label is then

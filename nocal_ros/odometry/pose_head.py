@@ -182,7 +182,7 @@ class PoseRunner:
     def load_frame(self, image: np.ndarray) -> int:
         """Map a native RGB frame onto the network's input in the next slot; returns the slot."""
         slot = 1 - self.current
-        # The training data's map (centred crop to the network's aspect ratio, INTER_AREA), for any frame shape.
+        # The training data's map (nocal_ros.network_input: the whole frame, INTER_AREA), for any frame shape.
         network_input(image, (self.width, self.height), out=self.host[slot].numpy())
         self.frames[slot].copy_(self.host[slot], non_blocking=self.cuda)
         self.current = slot
