@@ -1,10 +1,10 @@
 """Image pairs for training: every ``(i, j = i + gap)`` of one or more sequences, at the training size.
 
 Each sequence is one camera (its index in the list is the pair's ``camera_index``, which selects the
-camera model the trainer learns for it). Images are mapped to the training size once, at construction,
-by :func:`nocal_ros.network_input.network_input` (the whole frame, ``cv2.INTER_AREA``: the same map
-the camera's rays use, so any camera shape trains) and kept as one
-uint8 tensor per sequence, so drawing a batch is indexing and one conversion to float, never a resize.
+camera model the trainer learns for it). Images are mapped to the training size once, at
+construction, by :func:`nocal_ros.network_input.network_input` (the whole frame, ``cv2.INTER_AREA``:
+the same map the camera's rays use, so any camera shape trains) and kept as one uint8 tensor per
+sequence, so drawing a batch is indexing and one conversion to float, never a resize.
 
 A pair is labelled when both frames have arm poses; its label is then
 ``T_ci_cj = inv(T_base_ci) @ T_base_cj`` (the pose head's target). Labelled frames are a small share of
