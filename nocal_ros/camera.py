@@ -3,8 +3,10 @@
 Conventions (DESIGN.md, docs/INTERFACES.md):
 
 * Intrinsics live at the NATIVE image resolution. A lower training resolution ``(w, h)`` is served by
-  mapping its pixel centres to native pixel coordinates, ``u_native = (u_train + 0.5) * W / w - 0.5``,
-  so one model serves every training size and the learnt values never need rescaling.
+  mapping its pixel centres to native pixel coordinates with :mod:`nocal_ros.network_input`,
+  ``u_native = (u_train + 0.5) * W / w - 0.5`` and ``v_native = (v_train + 0.5) * H / h - 0.5`` (each
+  axis its own scale, so any aspect ratio), so one model serves every training size and camera shape,
+  and the learnt values never need rescaling.
 * A pixel ``(u, v)`` is addressed at its centre (OpenCV). Distorted normalised coordinates are
   ``x_d = (u - cx) / fx``, ``y_d = (v - cy) / fy``. The distortion MLP takes centred native pixel
   coordinates scaled to ``[-1, 1]`` (image edges at +-1, independent of the learnt principal point so
@@ -40,6 +42,7 @@ import torch
 from torch import nn
 
 from nocal_ros.geometry import pluecker_from_rays, rays_camera_to_world
+from nocal_ros.network_input import input_mapping
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
@@ -236,11 +239,16 @@ class CameraModel(nn.Module):
         return distorted + self.distortion_correction(u, v)
 
     def native_coordinates(self, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Native pixel coordinates ``(u, v)`` ``(h * w,)`` of the pixel centres of a ``w x h`` image."""
+        """Native pixel coordinates ``(u, v)`` ``(h * w,)`` of the pixel centres of a ``w x h`` network image.
+
+        The network image is the native frame mapped by :func:`nocal_ros.network_input.network_input`
+        (the whole frame, area-resized); this is the same map, so each network pixel gets the ray of
+        the native pixels it shows, for a camera of any aspect ratio.
+        """
         dtype = self.log_fx_rel.dtype
         device = self.log_fx_rel.device
         u, v = pixel_grid(width, height, dtype=dtype, device=device)
-        return (u + 0.5) * (self.width / width) - 0.5, (v + 0.5) * (self.height / height) - 0.5
+        return input_mapping((self.width, self.height), (width, height)).to_native(u, v)
 
     def directions(self, width: int | None = None, height: int | None = None) -> torch.Tensor:
         """Camera-frame unit ray directions ``(h * w, 3)`` (row-major) for a ``w x h`` image of this camera."""

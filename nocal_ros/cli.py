@@ -34,6 +34,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("nocal_ros.commands.eval", "evaluate a model's calibration and odometry against a bag's ground truth"),
     "odometry": ("nocal_ros.commands.odometry", "replay a bag offline: odometry bag, trajectory, calibration, report"),
     "bench": ("nocal_ros.commands.bench", "measure pose-head and estimator latency"),
+    "import": ("nocal_ros.commands.import_data", "convert KITTI, EuRoC, TUM RGB-D, VAMR, an image folder or a video to a rosbag2"),
 }
 
 

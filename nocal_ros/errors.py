@@ -15,3 +15,7 @@ class CheckpointError(NocalError):
 
 class ConfigError(NocalError):
     """A configuration or camera file is malformed or has invalid values."""
+
+
+class DatasetError(NocalError):
+    """A dataset to import does not match its format; the message names the file (and the line)."""

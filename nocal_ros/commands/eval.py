@@ -2,8 +2,8 @@
 
 * Camera: the learnt camera's focal error (native px and %), principal point error (px) and mean radial
   shift ``dr`` against ``/ground_truth/camera_info``, and the RMS residual of its plumb_bob fit.
-* Odometry: the pose head (pose-only path, at the model's training resolution, images resized with
-  ``INTER_AREA`` like the training data) on every consecutive pair of frames that have a
+* Odometry: the pose head (pose-only path, at the model's training resolution, frames mapped onto its
+  input as the training data are: ``nocal_ros.network_input``) on every consecutive pair of frames that have a
   ``/ground_truth/pose``; relative pose error per pair (metres, degrees), and APE of the chained poses
   with SE(3) and Sim(3) alignment.
 
@@ -110,7 +110,7 @@ def evaluate_bag(
     width, height = pose_model.input_size
     sequence = read_sequence(
         bag, image_topic=image_topic, pose_source="none", gt_topic=gt_topic,
-        camera_info_topic=camera_info_topic, resize=(width, height), max_frames=max_frames,
+        camera_info_topic=camera_info_topic, network_size=(width, height), max_frames=max_frames,
     )
     report: dict[str, Any] = {
         "model": pose_model.model_id,

@@ -16,13 +16,30 @@ import numpy as np
 
 from nocal_ros.commands import arguments as arg
 from nocal_ros.errors import BagError, ConfigError
-from nocal_ros.lens import CameraCalibration
+from nocal_ros.lens import CameraCalibration, scale_intrinsics
 
 # The built-in camera when no --camera is given; config/cameras/default_640x480.yaml holds the same.
 DEFAULT_CAMERA = CameraCalibration(
     640, 480, np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]]),
     np.array([-0.25, 0.08, 0.0, 0.0, 0.0]), "plumb_bob", "default_640x480",
 )
+
+
+def camera_at_size(calibration: CameraCalibration, width: int, height: int) -> CameraCalibration:
+    """The same lens on a ``width x height`` sensor with square pixels kept.
+
+    The same aspect ratio is a plain rescale (same field of view). Another aspect ratio scales by the
+    width (so the horizontal field of view and the pixel aspect stay) and keeps the principal point's
+    offset from the image centre: a 1280x720 render of a 640x480 camera is the middle 720 rows of its
+    1280x960 render. (Scaling each axis by its own ratio would make fy differ from fx, a camera
+    nobody builds.)
+    """
+    if width * calibration.height == height * calibration.width:
+        return calibration.scaled(width, height)
+    scale = width / calibration.width
+    K = scale_intrinsics(calibration.K, scale, scale)
+    K[1, 2] += (height - calibration.height * scale) / 2.0
+    return CameraCalibration(width, height, K, calibration.D.copy(), calibration.distortion_model, calibration.camera_name)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-camera", action="store_true",
                         help="draw a random plumb_bob camera from --seed instead (see synthetic.random_calibration)")
     parser.add_argument("--size", type=arg.image_size, default=None, metavar="WxH",
-                        help="render at this size; the camera's intrinsics are scaled to it (same field of view)")
+                        help="render at this size: the camera scaled to it (another aspect ratio keeps square pixels and "
+                             "the horizontal field of view, e.g. 1280x720 or 1241x376)")
     parser.add_argument("--frames", type=arg.positive_int, default=200, help="number of frames (default 200)")
     parser.add_argument("--fps", type=arg.positive_float, default=10.0, help="frame rate in Hz; sets the stamps (default 10)")
     parser.add_argument("--seed", type=arg.non_negative_int, default=0, help="scene, trajectory and labelling seed (default 0)")
@@ -70,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         calibration = CameraCalibration.load(args.camera) if args.camera is not None else DEFAULT_CAMERA
         if args.size is not None:
-            calibration = calibration.scaled(*args.size)
+            calibration = camera_at_size(calibration, *args.size)
 
     frame_times: list[float] = []
 

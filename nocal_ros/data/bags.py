@@ -689,8 +689,8 @@ def _resize_size(resize: Sequence[int] | None) -> tuple[int, int] | None:
 class _FrameChecker:
     """Decodes one image topic's messages, resizes them, and refuses a size change mid-bag."""
 
-    def __init__(self, path: Path, topic: str, resize: tuple[int, int] | None) -> None:
-        self.path, self.topic, self.resize = path, topic, resize
+    def __init__(self, path: Path, topic: str, resize: tuple[int, int] | None, network: bool = False) -> None:
+        self.path, self.topic, self.resize, self.network = path, topic, resize, network
         self.native_size: tuple[int, int] | None = None
         self.count = 0
 
@@ -709,7 +709,12 @@ class _FrameChecker:
             )
         self.count += 1
         if self.resize is not None and size != self.resize:
-            rgb = cv2.resize(rgb, self.resize, interpolation=cv2.INTER_AREA)
+            if self.network:  # what the network is fed (nocal_ros.network_input)
+                from nocal_ros.network_input import network_input
+
+                rgb = network_input(rgb, self.resize)[0]
+            else:
+                rgb = cv2.resize(rgb, self.resize, interpolation=cv2.INTER_AREA)
         return rgb
 
 
@@ -846,6 +851,7 @@ def read_sequence(
     camera_info_topic: str | None = CAMERA_INFO_TOPIC,
     resize: Sequence[int] | None = None,
     max_frames: int | None = None,
+    network_size: Sequence[int] | None = None,
 ) -> FrameSequence:
     """Read a bag (rosbag2 mcap/sqlite3 directory or file, or ROS 1 ``.bag``) into a FrameSequence.
 
@@ -862,11 +868,16 @@ def read_sequence(
         resize: ``(width, height)`` to resize images to (``cv2.INTER_AREA``); the calibration is
             scaled to match and ``extras["native_size"]`` keeps the recorded size.
         max_frames: keep only the first images.
+        network_size: ``(width, height)`` of a network's input: frames are mapped onto it as training
+            and the odometry map them (:func:`nocal_ros.network_input.network_input`); the calibration
+            stays at native resolution. Not with ``resize``.
 
     Stamps are the images' header stamps, sorted; frames with a repeated stamp are dropped.
     """
     path = _check_path(path)
-    size = _resize_size(resize)
+    if resize is not None and network_size is not None:
+        raise BagError(f"{path}: give resize or network_size, not both")
+    size = _resize_size(resize if network_size is None else network_size)
     if pose_source not in ("auto", "pose", "tf", "none"):
         raise BagError(f"{path}: pose_source must be auto, pose, tf or none, not {pose_source!r}")
     T_tool_cam = np.eye(4) if T_tool_cam is None else np.asarray(T_tool_cam, dtype=np.float64)
@@ -901,7 +912,7 @@ def read_sequence(
         if camera_info_topic in topics and topics[camera_info_topic].msgtype == CAMERA_INFO_TYPE:
             wanted.add(camera_info_topic)
         connections = [c for c in reader.connections if c.topic in wanted]
-        decode = _FrameChecker(path, image_topic, size)
+        decode = _FrameChecker(path, image_topic, size, network=network_size is not None)
         seen_images = 0
         for connection, bag_stamp, raw in reader.messages(connections=connections):
             topic, msgtype = connection.topic, connection.msgtype
@@ -959,12 +970,14 @@ def read_sequence(
     _warn_invalid_poses(path, invalid_poses)
     extras = {"native_size": native_size, "dropped_repeated_stamps": int((~keep).sum()),
               "invalid_pose_samples": int(invalid_poses)}
+    if network_size is not None:
+        extras["network_size"] = size
     if camera_info is not None:
         try:
             calibration = camera_info_to_calibration(camera_info)
         except BagError as error:  # an unknown camera is what nocal is for, not a reason to refuse the bag
             extras["camera_info_problem"] = f"{camera_info_topic}: {error}"
-        if calibration is not None and size is not None and size != native_size:
+        if calibration is not None and size is not None and size != native_size and network_size is None:
             calibration = calibration.scaled(*size)
     if use_pose_topic:
         extras["pose_source"] = f"topic {pose_topic}"

@@ -1,9 +1,10 @@
 """Image pairs for training: every ``(i, j = i + gap)`` of one or more sequences, at the training size.
 
 Each sequence is one camera (its index in the list is the pair's ``camera_index``, which selects the
-camera model the trainer learns for it). Images are resized once, at construction, with
-``cv2.INTER_AREA`` and kept as one uint8 tensor per sequence, so drawing a batch is indexing and one
-conversion to float, never a resize.
+camera model the trainer learns for it). Images are mapped to the training size once, at
+construction, by :func:`nocal_ros.network_input.network_input` (the whole frame, ``cv2.INTER_AREA``:
+the same map the camera's rays use, so any camera shape trains) and kept as one uint8 tensor per
+sequence, so drawing a batch is indexing and one conversion to float, never a resize.
 
 A pair is labelled when both frames have arm poses; its label is then
 ``T_ci_cj = inv(T_base_ci) @ T_base_cj`` (the pose head's target). Labelled frames are a small share of
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -23,6 +23,7 @@ from torch.utils.data import Dataset
 from nocal_ros.data.sequence import FrameSequence
 from nocal_ros.errors import ConfigError
 from nocal_ros.geometry import relative_transform
+from nocal_ros.network_input import network_input
 
 
 class PairDataset(Dataset):
@@ -162,8 +163,12 @@ class PairDataset(Dataset):
 
 
 def _resized_tensor(sequence: FrameSequence, width: int, height: int) -> torch.Tensor:
-    """``(N, 3, H, W)`` uint8 at the training size; INTER_AREA because it averages rather than aliases."""
+    """``(N, 3, H, W)`` uint8 at the training size, each frame mapped by :func:`network_input` (the
+    camera's rays use the same map, whatever the camera's aspect ratio)."""
     images = sequence.images
     if (images.shape[2], images.shape[1]) != (width, height):
-        images = np.stack([cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA) for image in images])
+        resized = np.empty((len(images), height, width, images.shape[3]), dtype=np.uint8)
+        for index, image in enumerate(images):
+            network_input(image, (width, height), out=resized[index])
+        images = resized
     return torch.from_numpy(np.ascontiguousarray(images.transpose(0, 3, 1, 2)))

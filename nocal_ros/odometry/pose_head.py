@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from nocal_ros.errors import NocalError
+from nocal_ros.network_input import network_input
 
 log = logging.getLogger(__name__)
 
@@ -180,12 +180,9 @@ class PoseRunner:
         return self.graph
 
     def load_frame(self, image: np.ndarray) -> int:
-        """Resize a native RGB frame into the ring; returns its key."""
-        if image.shape[1] != self.width or image.shape[0] != self.height:
-            # INTER_AREA averages the pixels each output pixel covers, like the training data's resize.
-            cv2.resize(image, (self.width, self.height), dst=self.host.numpy(), interpolation=cv2.INTER_AREA)
-        else:
-            self.host.numpy()[...] = image
+        """Map a native RGB frame onto the network's input in the ring; returns its key."""
+        # The training data's map (nocal_ros.network_input: the whole frame, INTER_AREA), for any frame shape.
+        network_input(image, (self.width, self.height), out=self.host.numpy())
         key = self.loaded
         self.ring[key % self.history].copy_(self.host, non_blocking=self.cuda)
         self.loaded += 1
