@@ -119,8 +119,8 @@ def test_odometry_and_training_see_the_same_network_image(native, mono):
     training_image = (pairs.collate([0])["image_j"][0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
 
     runner = PoseRunner(PoseModel(predict_pose=lambda a, b: torch.eye(4)[None], input_size=NETWORK), cuda_graphs=False)
-    slot = runner.load_frame(rgb[1])
-    odometry_image = runner.host[slot].numpy()
+    key = runner.load_frame(rgb[1])
+    odometry_image = runner.ring[key % runner.history].cpu().numpy()
 
     expected, mapping = network_input(rgb[1], NETWORK)
     np.testing.assert_array_equal(odometry_image, expected)
