@@ -85,6 +85,8 @@ log = logging.getLogger(__name__)
 
 #: How many recent stamp steps the frame period is estimated from.
 PERIOD_HISTORY = 32
+#: How many arm poses :meth:`OdometryEstimator.add_arm_pose` keeps (the newest).
+ARM_POSE_HISTORY = 1000
 
 
 class FrameError(NocalError):
@@ -118,6 +120,10 @@ class OdometryResult:
         inference_ms: time spent in the pose head for this frame.
         motion_source: where the pair's motion came from: ``"pose_head"``, or ``"essential"`` /
             ``"rotation"`` when two-view geometry gave the rotation (see the module notes).
+        tracking: ``"initialising"`` for the first frame of a chain (no motion measured yet), else
+            ``"ok"``; the keyframe VO adds ``"lost"`` (docs: ESTIMATOR_API).
+        scale_source: where the translation's length comes from: ``"pose_head"`` here (the VO adds
+            ``"arm"`` and ``"none"``).
     """
 
     stamp_ns: int
@@ -131,6 +137,8 @@ class OdometryResult:
     gap: int
     inference_ms: float = 0.0
     motion_source: str = "pose_head"
+    tracking: str = "ok"
+    scale_source: str = "pose_head"
 
 
 @dataclass
@@ -170,6 +178,8 @@ class OdometryEstimator:
         channels_last: run the convolutions in channels-last layout (faster on CPU; see BENCHMARKS.md).
         two_view: measure each pair's rotation and direction of travel by two-view geometry through the
             model's learnt camera (see the module notes); ignored for a model without a camera.
+        calibration: a ``CameraCalibration`` that :meth:`camera_info` reports instead of the model's
+            learnt camera (see :meth:`set_calibration`).
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -186,8 +196,12 @@ class OdometryEstimator:
         cuda_graphs: bool = True,
         channels_last: bool = True,
         two_view: bool = True,
+        calibration: "CameraCalibration | None" = None,
     ) -> None:
         self._lock = threading.RLock()
+        self._calibration: "CameraCalibration | None" = None
+        self._calibration_source = "model"
+        self._arm_poses: deque[tuple[int, np.ndarray]] = deque(maxlen=ARM_POSE_HISTORY)
         self.two_view = bool(two_view)
         self.channels_last = channels_last
         self.device_request = device
@@ -203,6 +217,8 @@ class OdometryEstimator:
         self._runner: PoseRunner
         self._load(checkpoint)
         self.reset()
+        if calibration is not None:
+            self.set_calibration(calibration)
 
     # -- model -------------------------------------------------------------------------------------
 
@@ -271,6 +287,7 @@ class OdometryEstimator:
             self._image_shape: tuple[int, int] | None = None
             self._encoding: str | None = None
             self._steps: deque[int] = deque(maxlen=PERIOD_HISTORY)
+            self._arm_poses.clear()
 
     @property
     def image_size(self) -> tuple[int, int] | None:
@@ -367,7 +384,9 @@ class OdometryEstimator:
         self._has_previous = True
         self._previous_stamp = stamp_ns
         unknown = np.eye(6) * UNKNOWN_VARIANCE
-        return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
+        result = self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
+        result.tracking = "initialising"
+        return result
 
     def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str,
                    source: str = "pose_head") -> OdometryResult:
@@ -411,8 +430,14 @@ class OdometryEstimator:
 
         At ``width x height`` (default: the size of the frames seen, else the camera's native size).
         Fitting the distortion model to the learnt MLP takes a moment, so results are cached per size.
-        Raises NocalError when the model carries no camera.
+        A calibration given to :meth:`set_calibration` replaces the learnt camera (scaled to the size,
+        residual 0). Raises NocalError when there is neither.
         """
+        with self._lock:
+            override = self._calibration
+        if override is not None:
+            size = (int(width), int(height)) if width and height else (self.image_size or (override.width, override.height))
+            return (override if size == (override.width, override.height) else override.scaled(*size)), 0.0
         camera = self.model.camera
         if camera is None:
             raise NocalError(f"model {self.model.model_id} has no learnt camera to publish")
@@ -434,6 +459,51 @@ class OdometryEstimator:
         with self._lock:
             self._calibration_cache[size] = (calibration, residual)
         return calibration, residual
+
+    def set_calibration(self, calibration: "CameraCalibration") -> None:
+        """Report ``calibration`` from :meth:`camera_info` from now on (camera_info_url, ~/set_camera_info).
+
+        The pose and the pair chain are kept. This frame-to-frame estimator has no online camera, so
+        the calibration is a parametric override of the model's camera for CameraInfo only; the
+        keyframe VO restarts its online camera from it instead. It survives :meth:`reset` and
+        :meth:`reload`.
+        """
+        from nocal_ros.lens import CameraCalibration
+
+        if not isinstance(calibration, CameraCalibration):
+            raise TypeError(f"set_calibration wants a CameraCalibration, got {type(calibration).__name__}")
+        with self._lock:
+            self._calibration = calibration
+            self._calibration_source = "file"
+
+    def calibration_status(self) -> dict:
+        """Where the published camera comes from: ``{"state", "source", "focal_std_px", "keyframes"}``.
+
+        Always ``"prior"`` here: nothing refines the camera online, so there is no uncertainty to report.
+        """
+        with self._lock:
+            return {"state": "prior", "source": self._calibration_source, "focal_std_px": None, "keyframes": 0}
+
+    def add_arm_pose(self, stamp_ns: int, T_base_cam: np.ndarray) -> None:
+        """Record the camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied).
+
+        Kept in a bounded buffer (the newest :data:`ARM_POSE_HISTORY`), cleared by :meth:`reset`; the
+        keyframe VO fits its metric scale to them. Raises ValueError for anything but a finite rigid 4x4.
+        """
+        T = np.array(T_base_cam, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"arm pose must be a finite 4x4 transform, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError("arm pose is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+        with self._lock:
+            self._arm_poses.append((int(stamp_ns), T))
+
+    @property
+    def arm_poses(self) -> list[tuple[int, np.ndarray]]:
+        """The recorded ``(stamp_ns, T_base_cam)`` pairs, oldest first (copies)."""
+        with self._lock:
+            return [(stamp, T.copy()) for stamp, T in self._arm_poses]
 
 
 def combine_motion(T_pose_head: np.ndarray, rotation: np.ndarray, direction: np.ndarray | None) -> np.ndarray:
