@@ -113,6 +113,10 @@ class LiveRecorder:
         return self._frames
 
     @property
+    def arm_poses(self) -> int:
+        return self._arm_poses
+
+    @property
     def bytes_written(self) -> int:
         return self._writer.bytes_written
 
