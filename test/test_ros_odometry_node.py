@@ -72,7 +72,7 @@ class Harness(Node):
     def __init__(self, context) -> None:
         super().__init__("odometry_test_harness", context=context)
         self.images = self.create_publisher(Image, "image", qos_profile_sensor_data)
-        self.clock = self.create_publisher(Clock, "/clock", 10)
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10)
         self.arm = self.create_publisher(PoseStamped, "arm_pose", 10)
         self.odometry: list[Odometry] = []
         self.camera_info: list[CameraInfo] = []
@@ -111,7 +111,7 @@ def publish_sequence(harness, frames, start_ns=START_NS) -> list[int]:
 def set_clock(harness, node, t_ns: int) -> None:
     """Publish /clock until the node's clock reads ``t_ns`` (its /clock subscription keeps one, best effort)."""
     def reached() -> bool:
-        harness.clock.publish(Clock(clock=ns_to_stamp(t_ns)))
+        harness.clock_pub.publish(Clock(clock=ns_to_stamp(t_ns)))
         return node.get_clock().now().nanoseconds == t_ns
 
     assert wait_for(reached, timeout=10.0), f"the node's clock never reached {t_ns}"
@@ -156,8 +156,14 @@ def ros(checkpoint, tmp_path):
         node = OdometryNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()])
         harness = Harness(context)
         spinners.append(Spinner(context, node, harness))
-        # Wait for the image subscription to match, or the first frames are lost to discovery.
-        assert wait_for(lambda: harness.images.get_subscription_count() > 0)
+        # Wait until each publisher has matched its subscriber both ways, or the first messages are lost
+        # to discovery (the node's TF broadcaster counts the harness's and the node's own /tf listeners).
+        assert wait_for(lambda: harness.images.get_subscription_count() > 0
+                        and node.odom_publisher.get_subscription_count() > 0
+                        and node.camera_info_publisher.get_subscription_count() > 0
+                        and node.diagnostics_publisher.get_subscription_count() > 0
+                        and node.tf_broadcaster.pub_tf.get_subscription_count() >= 2
+                        and harness.broadcaster.pub_tf.get_subscription_count() >= 2)
         return node, harness
 
     yield launch

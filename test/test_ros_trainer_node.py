@@ -121,7 +121,9 @@ def nodes(tmp_path, field_data, request):
     harness = Harness(context, namespace)
     harness.store_id = str(store.root)
     spinner = Spinner(context, odometry, trainer, harness)
-    assert wait_for(lambda: harness.count_publishers(f"{namespace}/trainer_node/progress") > 0, 10)
+    # The trainer's publishers must have matched the harness's subscriptions, or early records are lost.
+    assert wait_for(lambda: trainer._progress_pub.get_subscription_count() > 0
+                    and trainer._diagnostics_pub.get_subscription_count() > 0, 10)
     yield trainer, odometry, harness, store
     spinner.shutdown()
     rclpy.try_shutdown(context=context)
