@@ -12,7 +12,7 @@ from pathlib import Path
 
 from nocal_ros.finetune import FinetuneConfig, FinetuneJob
 from nocal_ros.live.health import ERROR, OK, WARN
-from nocal_ros.live.trainer import diagnostic_level, progress_record
+from nocal_ros.live.trainer import diagnostic_level, final_record, progress_record
 
 
 def worker_that_finishes_in_one_batch(config_values, messages, cancel, log_level):
@@ -47,6 +47,10 @@ def test_a_batch_drained_in_one_poll_keeps_each_records_own_state(tmp_path):
     assert all(r["total_steps"] == 10 and r["output"] == str(tmp_path) and r["bags"] == ["arm.mcap"] for r in records)
     assert "type" not in records[0] and records[2]["version"] == "v0002"
     assert batch[-1]["state"] == "succeeded" and job.status()["state"] == "succeeded"
+    # The record that ends the run says how it ended, and carries none of the last step's fields.
+    final = final_record(job.status())
+    assert final == {"state": "succeeded", "stage": "succeeded", "output": str(tmp_path), "bags": ["arm.mcap"],
+                     "version": "v0002", "model_path": "/store/v0002/model.safetensors"}
     job.close()
 
 

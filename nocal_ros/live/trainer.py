@@ -21,6 +21,15 @@ def progress_record(config: Any, message: dict) -> dict:
     return record
 
 
+def final_record(summary: dict) -> dict:
+    """The ``~/progress`` record that ends a run: its stage is the final state, and it carries the
+    outcome (version or error) but none of the last step's fields, which belong to that step's record."""
+    record = {key: summary[key] for key in ("state", "output", "bags", "warnings", "error", "version", "model_path")
+              if key in summary}
+    record["stage"] = summary["state"]
+    return record
+
+
 def diagnostic_level(summary: dict, recording: dict | None = None) -> tuple[int, str]:
     """``(level, message)`` for ``/diagnostics`` from a job summary (:meth:`FinetuneJob.status`, or
     ``{"state": "idle"}``) and, while one runs, the live recording's counts.

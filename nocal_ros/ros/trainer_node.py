@@ -45,7 +45,7 @@ from nocal_ros.errors import NocalError
 from nocal_ros.finetune import FinetuneConfig, FinetuneJob
 from nocal_ros.live.arm_poses import PendingStamps
 from nocal_ros.live.recorder import LiveRecorder, RecordingLimits, RecordingSummary
-from nocal_ros.live.trainer import diagnostic_level, progress_record
+from nocal_ros.live.trainer import diagnostic_level, final_record, progress_record
 
 DEFAULT_STORE = os.path.join("~", ".ros", "nocal_ros", "models")
 IDENTITY_16 = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
@@ -343,7 +343,7 @@ class TrainerNode(Node):
             self.get_logger().info("fine-tuning cancelled; previous model kept")
         else:
             self.get_logger().error(f"fine-tuning failed: {job.error}")
-        self._publish_record(self._summary())
+        self._publish_record(final_record(job.status()))
         self._publish_diagnostics()
 
     def _try_reload(self) -> None:
