@@ -1,10 +1,79 @@
-"""ament_python package that also installs with plain pip on a machine without ROS."""
+"""ament_python package that also installs with plain pip on a machine without ROS.
 
+Two installers read this file, and they want the executables in different places:
+
+* pip (any version: ``pyproject.toml`` makes even pip 23.0 build a PEP 517 / PEP 660 wheel, never
+  ``setup.py develop``) puts ``nocal``, ``odometry_node`` and ``trainer_node`` on PATH (``bin``);
+* colcon puts them where ``ros2 run`` looks, ``<prefix>/lib/nocal_ros``: ``setup.cfg`` says so for
+  ``setup.py install`` (a wheel build overrides it), and :class:`ColconDevelop` for
+  ``colcon build --symlink-install`` where setuptools has dropped what colcon calls.
+"""
+
+import sys
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
+from setuptools.command.develop import develop as SetuptoolsDevelop
 
 package_name = "nocal_ros"
+console_scripts = [
+    "nocal = nocal_ros.cli:main",
+    "odometry_node = nocal_ros.ros.odometry_node:main",
+    "trainer_node = nocal_ros.ros.trainer_node:main",
+]
+
+
+class ColconDevelop(SetuptoolsDevelop):
+    """``setup.py develop`` as ``colcon build --symlink-install`` calls it, on setuptools >= 80.
+
+    colcon (before 0.21, which falls back to a full install instead) runs ``setup.py develop --prefix P
+    --editable --build-directory B --no-deps`` in its build directory, where it has symlinked
+    ``setup.py`` and the package sources, and puts that directory on PYTHONPATH. Setuptools 80 turned
+    ``develop`` into a shim for ``pip install -e`` that knows none of those options. This does what
+    the old command did for colcon: the egg-info beside the symlinked sources, and one executable
+    per console script in ``P/lib/nocal_ros``; ``--uninstall`` removes the executables again.
+    Without ``--editable`` it is setuptools' own command.
+    """
+
+    user_options = SetuptoolsDevelop.user_options + [
+        ("editable", "e", "develop in place, as colcon --symlink-install asks"),
+        ("build-directory=", "b", "colcon's build directory (the sources are symlinked there)"),
+        ("uninstall", "u", "remove what a previous develop installed"),
+        ("install-layout=", None, "accepted for colcon on Debian; the executables go to lib/nocal_ros"),
+    ]
+    boolean_options = SetuptoolsDevelop.boolean_options + ["editable", "uninstall"]
+
+    def initialize_options(self) -> None:
+        super().initialize_options()
+        self.editable = False
+        self.build_directory = None
+        self.uninstall = False
+        self.install_layout = None
+
+    def run(self) -> None:
+        if not self.editable:
+            super().run()
+            return
+        scripts = Path(self.prefix or sys.prefix) / "lib" / package_name
+        entries = [(name.strip(), target.strip()) for name, target in (e.split("=", 1) for e in console_scripts)]
+        if self.uninstall:
+            for name, _ in entries:
+                (scripts / name).unlink(missing_ok=True)
+            return
+        self.run_command("egg_info")
+        scripts.mkdir(parents=True, exist_ok=True)
+        for name, target in entries:
+            module, function = target.split(":")
+            path = scripts / name
+            path.write_text(f"#!{sys.executable}\nimport sys\n\nfrom {module} import {function}\n\n"
+                            f"if __name__ == '__main__':\n    sys.exit({function}())\n")
+            path.chmod(0o755)
+
+
+# Setuptools before 80 still has the develop colcon was written for (it reads setup.cfg's [install]).
+develop_options = {option[0].rstrip("=") for option in SetuptoolsDevelop.user_options}
+cmdclass = {} if "editable" in develop_options else {"develop": ColconDevelop}
 
 setup(
     name=package_name,
@@ -31,17 +100,11 @@ setup(
         "gtsam==4.3.0",
     ],
     extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"]},
-    zip_safe=True,
+    zip_safe=False,
     maintainer="nocal_ros developers",
     maintainer_email="nocal@example.com",
     description="Visual odometry and camera calibration from an uncalibrated camera (NOCaL).",
     license="Apache-2.0",
-    tests_require=["pytest"],
-    entry_points={
-        "console_scripts": [
-            "nocal = nocal_ros.cli:main",
-            "odometry_node = nocal_ros.ros.odometry_node:main",
-            "trainer_node = nocal_ros.ros.trainer_node:main",
-        ],
-    },
+    cmdclass=cmdclass,
+    entry_points={"console_scripts": console_scripts},
 )

@@ -2,6 +2,10 @@
 
     ros2 launch nocal_ros odometry.launch.py image:=/camera/image_raw
     ros2 launch nocal_ros odometry.launch.py image:=/cam/image_raw model_path:=~/.ros/nocal_ros/models
+    ros2 launch nocal_ros odometry.launch.py camera_info_url:=file:///data/wrist.yaml use_sim_time:=true
+    ros2 launch nocal_ros odometry.launch.py arm_pose_source:=pose arm_pose:=/arm/pose
+
+The arguments below override the same parameters in params_file; the others come from params_file.
 """
 
 import os
@@ -22,6 +26,12 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("model_path", default_value="", description="checkpoint or model store ('' = shipped)"),
         DeclareLaunchArgument("device", default_value="auto", description="auto, cpu or cuda"),
         DeclareLaunchArgument("base_frame", default_value="base_link", description="child frame of odom"),
+        DeclareLaunchArgument("camera_name", default_value="camera", description="camera_info_manager's ${NAME}"),
+        DeclareLaunchArgument("camera_info_url", default_value="",
+                              description="calibration YAML (file:// or package://; '' = file://${ROS_HOME}/camera_info/${NAME}.yaml)"),
+        DeclareLaunchArgument("arm_pose_source", default_value="none", description="none | pose | tf (arm poses for metric scale)"),
+        DeclareLaunchArgument("arm_pose", default_value="/arm/pose", description="PoseStamped arm pose topic (arm_pose_source pose)"),
+        DeclareLaunchArgument("use_sim_time", default_value="false", description="follow /clock (ros2 bag play --clock)"),
     ]
     node = Node(
         package="nocal_ros",
@@ -34,11 +44,16 @@ def generate_launch_description() -> LaunchDescription:
                 "model_path": ParameterValue(LaunchConfiguration("model_path"), value_type=str),
                 "device": ParameterValue(LaunchConfiguration("device"), value_type=str),
                 "base_frame": ParameterValue(LaunchConfiguration("base_frame"), value_type=str),
+                "camera_name": ParameterValue(LaunchConfiguration("camera_name"), value_type=str),
+                "camera_info_url": ParameterValue(LaunchConfiguration("camera_info_url"), value_type=str),
+                "arm_pose_source": ParameterValue(LaunchConfiguration("arm_pose_source"), value_type=str),
+                "use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool),
             },
         ],
         remappings=[
             ("image", LaunchConfiguration("image")),
             ("image/compressed", [LaunchConfiguration("image"), "/compressed"]),
+            ("arm_pose", LaunchConfiguration("arm_pose")),
         ],
     )
     return LaunchDescription([*arguments, node])

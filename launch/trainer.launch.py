@@ -1,6 +1,8 @@
 """Launch the trainer node with config/trainer.yaml (override with params_file:=...).
 
     ros2 launch nocal_ros trainer.launch.py output_store:=/data/models
+    ros2 service call /trainer_node/record std_srvs/srv/SetBool "{data: true}"   # record live, then
+    ros2 service call /trainer_node/record std_srvs/srv/SetBool "{data: false}"  # stop: ~/start trains on it
 
 Without ROS, ``nocal train --init MODEL --bag BAG --out STORE`` runs the same fine-tuning job.
 """
@@ -12,6 +14,7 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -21,6 +24,7 @@ def generate_launch_description() -> LaunchDescription:
     output_store = LaunchConfiguration("output_store")
     reload_service = LaunchConfiguration("reload_service")
     training_config = LaunchConfiguration("training_config")
+    use_sim_time = LaunchConfiguration("use_sim_time")
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=default_params, description="trainer parameters"),
         DeclareLaunchArgument("output_store", default_value=os.path.expanduser("~/.ros/nocal_ros/models"),
@@ -29,12 +33,15 @@ def generate_launch_description() -> LaunchDescription:
                               description="odometry node's reload service (empty: do not call)"),
         DeclareLaunchArgument("training_config", default_value=os.path.join(share, "config", "finetune.yaml"),
                               description="training recipe YAML for fine-tuning"),
+        DeclareLaunchArgument("use_sim_time", default_value="false",
+                              description="follow /clock (the recording's duration limit then runs on it)"),
         Node(
             package="nocal_ros",
             executable="trainer_node",
             name="trainer_node",
             output="screen",
             parameters=[params_file, {"output_store": output_store, "reload_service": reload_service,
-                                     "training_config": training_config}],
+                                     "training_config": training_config,
+                                     "use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         ),
     ])

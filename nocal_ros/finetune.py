@@ -541,7 +541,12 @@ class FinetuneJob:
             self._cancel_requested_at = time.monotonic()
 
     def poll(self, grace_s: float = 10.0) -> list[dict]:
-        """Drain the worker's messages, update the state, and return the messages."""
+        """Drain the worker's messages, update the state, and return the messages.
+
+        Each message carries ``"state"``: the job's state once that message was handled, so a batch
+        drained in one poll (the last progress, saving, done and the result together) keeps
+        ``"running"`` on its progress records and only the result says ``"succeeded"``.
+        """
         received = self._drain()
         if self.state != "running":
             return received
@@ -605,6 +610,7 @@ class FinetuneJob:
             self.error = message.get("message")
             if message.get("traceback"):
                 log.error("fine-tuning worker failed:\n%s", message["traceback"])
+        message["state"] = self.state
         if self.state in self.TERMINAL and self._process is not None:
             self._process.join(timeout=5)
 

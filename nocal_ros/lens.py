@@ -299,6 +299,10 @@ class CameraCalibration:
         D: float64 distortion coefficients in ROS order for ``distortion_model``.
         distortion_model: ``plumb_bob``, ``rational_polynomial`` or ``equidistant``.
         camera_name: free text, kept through YAML round trips.
+        R: 3x3 rectification matrix (stereo), or None for the identity of a monocular camera.
+        P: 3x4 projection matrix of the rectified image, or None for ``[K | 0]``. camera_calibration
+            writes a P that differs from K (the undistorted image's camera); image_proc rectifies to it.
+            Both are kept through YAML and CameraInfo so a calibration round-trips unchanged.
     """
 
     width: int
@@ -307,6 +311,8 @@ class CameraCalibration:
     D: np.ndarray = field(default_factory=lambda: np.zeros(5))
     distortion_model: str = "plumb_bob"
     camera_name: str = "camera"
+    R: np.ndarray | None = None
+    P: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.width, self.height = int(self.width), int(self.height)
@@ -318,6 +324,18 @@ class CameraCalibration:
         if not np.allclose(self.K[1, 0], 0) or not np.allclose(self.K[2], [0, 0, 1]):
             raise ValueError(f"camera matrix must be upper triangular with last row [0, 0, 1], got {self.K.tolist()}")
         self.D = normalise_coefficients(self.D, self.distortion_model)
+        if self.R is not None:
+            self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
+            if not np.all(np.isfinite(self.R)):
+                raise ValueError("rectification matrix R holds non-finite values")
+            if np.array_equal(self.R, np.eye(3)) or not self.R.any():  # all zeros: what uncalibrated drivers send
+                self.R = None
+        if self.P is not None:
+            self.P = np.asarray(self.P, dtype=np.float64).reshape(3, 4)
+            if not np.all(np.isfinite(self.P)):
+                raise ValueError("projection matrix P holds non-finite values")
+            if np.array_equal(self.P, np.hstack([self.K, np.zeros((3, 1))])) or not self.P.any():
+                self.P = None
 
     # ---- construction ------------------------------------------------------------------------
 
@@ -346,10 +364,24 @@ class CameraCalibration:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
+    @property
+    def rectification(self) -> np.ndarray:
+        """R (3x3): the identity for a monocular camera."""
+        return np.eye(3) if self.R is None else self.R.copy()
+
+    @property
+    def projection(self) -> np.ndarray:
+        """P (3x4): ``[K | 0]`` unless the calibration gave another."""
+        return np.hstack([self.K, np.zeros((3, 1))]) if self.P is None else self.P.copy()
+
     def scaled(self, width: int, height: int) -> "CameraCalibration":
         """The same lens at another image size (distortion is in normalised units, so unchanged)."""
-        K = scale_intrinsics(self.K, width / self.width, height / self.height)
-        return CameraCalibration(width, height, K, self.D.copy(), self.distortion_model, self.camera_name)
+        sx, sy = width / self.width, height / self.height
+        K = scale_intrinsics(self.K, sx, sy)
+        P = None
+        if self.P is not None:  # P's left 3x3 is a camera matrix; its last column (-fx' B) scales with fx
+            P = np.hstack([scale_intrinsics(self.P[:, :3], sx, sy), self.P[:, 3:] * np.array([[sx], [sy], [1.0]])])
+        return CameraCalibration(width, height, K, self.D.copy(), self.distortion_model, self.camera_name, self.R, P)
 
     # ---- projection --------------------------------------------------------------------------
 
@@ -418,8 +450,7 @@ class CameraCalibration:
     # ---- YAML (ROS camera_calibration format) -------------------------------------------------
 
     def to_dict(self) -> dict:
-        """The ROS ``camera_calibration`` YAML mapping (monocular: R = I, P = [K | 0])."""
-        P = np.hstack([self.K, np.zeros((3, 1))])
+        """The ROS ``camera_calibration`` YAML mapping, as camera_calibration_parsers writes it."""
         matrix = lambda m: {"rows": int(m.shape[0]), "cols": int(m.shape[1]), "data": [float(x) for x in m.reshape(-1)]}
         return {
             "image_width": self.width,
@@ -428,8 +459,8 @@ class CameraCalibration:
             "camera_matrix": matrix(self.K),
             "distortion_model": self.distortion_model,
             "distortion_coefficients": matrix(self.D.reshape(1, -1)),
-            "rectification_matrix": matrix(np.eye(3)),
-            "projection_matrix": matrix(P),
+            "rectification_matrix": matrix(self.rectification),
+            "projection_matrix": matrix(self.projection),
         }
 
     @classmethod
@@ -472,12 +503,11 @@ class CameraCalibration:
         if model not in DISTORTION_MODELS:
             raise fail(f"unsupported distortion_model {model!r} (supported: {', '.join(DISTORTION_MODELS)})")
         D = matrix("distortion_coefficients", 1, None) if data.get("distortion_coefficients") is not None else np.zeros(0)
-        for optional, rows, cols in (("rectification_matrix", 3, 3), ("projection_matrix", 3, 4)):
-            if data.get(optional) is not None:
-                matrix(optional, rows, cols)
+        R = matrix("rectification_matrix", 3, 3) if data.get("rectification_matrix") is not None else None
+        P = matrix("projection_matrix", 3, 4) if data.get("projection_matrix") is not None else None
         name = data.get("camera_name", "camera")
         try:
-            return cls(width, height, K, D, model, str(name) if name is not None else "camera")
+            return cls(width, height, K, D, model, str(name) if name is not None else "camera", R, P)
         except ValueError as error:
             raise fail(str(error)) from None
 
@@ -511,4 +541,6 @@ class CameraCalibration:
             == (other.width, other.height, other.distortion_model, other.camera_name)
             and np.array_equal(self.K, other.K)
             and np.array_equal(self.D, other.D)
+            and np.array_equal(self.rectification, other.rectification)
+            and np.array_equal(self.projection, other.projection)
         )

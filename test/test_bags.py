@@ -452,3 +452,29 @@ def test_decoder_takes_rclpy_style_messages():
     np.testing.assert_array_equal(decode_image(msg), RGB)
     ok, png = cv2.imencode(".png", cv2.cvtColor(RGB, cv2.COLOR_RGB2BGR))
     np.testing.assert_array_equal(decode_compressed_image(SimpleNamespace(format="png", data=png.tobytes())), RGB)
+
+
+def test_camera_info_keeps_the_projection_and_rectification(tmp_path):
+    from nocal_ros.data.bags import read_camera_info
+
+    R = np.array([[0.9998, -0.0175, 0.0], [0.0175, 0.9998, 0.0], [0.0, 0.0, 1.0]])
+    P = np.array([[600.0, 0, 320.0, -42.0], [0, 600.0, 240.0, 0.0], [0, 0, 1.0, 0.0]])
+    written = CameraCalibration(640, 480, [[590.0, 0, 321.0], [0, 591.0, 239.0], [0, 0, 1]], [0.1, -0.2, 0, 0, 0],
+                                camera_name="camera_optical", R=R, P=P)
+    for storage, name in (("mcap", "bag"), ("ros1", "bag.bag")):
+        path = tmp_path / name
+        with BagWriter(path, storage) as writer:
+            writer.write_camera_info("/camera_info", S, "camera_optical", written)
+        assert read_camera_info(path, "/camera_info") == written
+
+
+def test_bytes_written_counts_what_lands_in_the_bag(tmp_path):
+    path = tmp_path / "sized.mcap"
+    rng = np.random.default_rng(0)
+    with BagWriter(path) as writer:
+        for k in range(20):  # random pixels: mcap's chunk compression cannot shrink them
+            writer.write_image("/camera/image_raw", S + k, "cam", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+        counted = writer.bytes_written
+    size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+    assert counted >= 20 * 48 * 64 * 3
+    assert counted <= size <= counted + 20_000  # the index, schema and metadata are small

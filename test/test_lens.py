@@ -145,3 +145,72 @@ def test_malformed_yaml_raises_config_error_naming_the_file(tmp_path, text, prob
 def test_missing_file_raises_config_error(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         CameraCalibration.load(tmp_path / "nope.yaml")
+
+
+# A file as camera_calibration's monocular calibrator writes it (camera_calibration_parsers' layout):
+# P is the rectified image's camera, not [K | 0].
+OST_YAML = """image_width: 640
+image_height: 480
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [  617.3,    0.  ,  327.2,
+             0.  ,  617.1,  239.8,
+             0.  ,    0.  ,    1.  ]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.101, -0.223, 0.0012, -0.0004, 0.0]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1., 0., 0.,
+         0., 1., 0.,
+         0., 0., 1.]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [  623.5,    0.  ,  326.9,    0.  ,
+             0.  ,  626.2,  239.1,    0.  ,
+             0.  ,    0.  ,    1.  ,    0.  ]
+"""
+
+
+def test_camera_calibration_files_keep_their_projection_and_rectification(tmp_path):
+    source = tmp_path / "ost.yaml"
+    source.write_text(OST_YAML)
+    camera = CameraCalibration.load(source)
+    assert camera.camera_name == "narrow_stereo" and camera.R is None  # the identity is not stored
+    np.testing.assert_array_equal(camera.projection[:, :3], [[623.5, 0, 326.9], [0, 626.2, 239.1], [0, 0, 1]])
+    np.testing.assert_array_equal(camera.rectification, np.eye(3))
+    copy = tmp_path / "copy.yaml"
+    camera.save(copy)
+    assert CameraCalibration.load(copy) == camera
+    # A stereo camera's R and P (baseline in P[0, 3]) survive too, and differ from the monocular default.
+    R = np.array([[0.9998, -0.0175, 0.0], [0.0175, 0.9998, 0.0], [0.0, 0.0, 1.0]])
+    P = np.array([[600.0, 0, 320.0, -42.0], [0, 600.0, 240.0, 0.0], [0, 0, 1.0, 0.0]])
+    stereo = CameraCalibration(640, 480, camera.K, camera.D, camera_name="right", R=R, P=P)
+    stereo.save(copy)
+    loaded = CameraCalibration.load(copy)
+    assert loaded == stereo and loaded != CameraCalibration(640, 480, camera.K, camera.D, camera_name="right")
+    np.testing.assert_array_equal(loaded.P, P)
+    np.testing.assert_array_equal(loaded.R, R)
+
+
+def test_scaling_moves_the_projection_like_the_camera_matrix():
+    P = np.array([[600.0, 0, 320.0, -42.0], [0, 610.0, 240.0, 0.0], [0, 0, 1.0, 0.0]])
+    camera = CameraCalibration(640, 480, [[590.0, 0, 321.0], [0, 591.0, 239.0], [0, 0, 1]], P=P)
+    half = camera.scaled(320, 240)
+    np.testing.assert_allclose(half.P[:, :3], scale_intrinsics(P[:, :3], 0.5, 0.5))
+    assert half.P[0, 3] == pytest.approx(-21.0)  # -fx' B: the baseline is unchanged, fx halves
+    np.testing.assert_allclose(half.K, scale_intrinsics(camera.K, 0.5, 0.5))
+    assert CameraCalibration.pinhole(64, 48, 50.0).scaled(32, 24).P is None
+
+
+def test_non_finite_projection_is_refused(tmp_path):
+    path = tmp_path / "bad_projection.yaml"
+    path.write_text(OST_YAML.replace("623.5", ".nan"))
+    with pytest.raises(ConfigError, match="bad_projection.yaml: projection_matrix holds non-finite"):
+        CameraCalibration.load(path)

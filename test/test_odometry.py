@@ -337,3 +337,100 @@ def test_mailbox_keeps_only_the_newest_frame_and_counts_the_rest():
     latest.close()
     consumer.join(timeout=1)
     assert not consumer.is_alive() and got[-1] is None
+
+
+# ---- the interface the keyframe VO keeps (ESTIMATOR_API): calibration, arm poses, tracking ---------
+
+
+def test_set_calibration_replaces_the_published_camera_and_keeps_the_pose():
+    from nocal_ros.camera import CameraModel
+    from nocal_ros.lens import CameraCalibration
+
+    T_w_c = random_trajectory(6, seed=11)
+    poses = TrajectoryPoses(T_w_c)
+    model = PoseModel(predict_pose=poses, input_size=(32, 24), model_id="trajectory", camera=CameraModel(64, 48))
+    estimator = OdometryEstimator(model, method="pose_head")
+    status = estimator.calibration_status()
+    assert (status["state"], status["source"], status["focal_std_px"], status["keyframes"]) == ("prior", "model", None, 0)
+    learnt, _ = estimator.camera_info(64, 48)
+    assert learnt.fx == pytest.approx(64.0)  # the untrained camera: f = width
+    for k in range(3):
+        before = estimator.process(START_NS + k * PERIOD_NS, frame(k))
+
+    given = CameraCalibration(640, 480, [[500.0, 0, 321.5], [0, 502.0, 238.0], [0, 0, 1]], [0.1, -0.2, 0.001, 0.002, 0.0])
+    estimator.set_calibration(given)
+    assert estimator.calibration_status()["source"] == "file"
+    published, residual = estimator.camera_info()  # at the frames' size: the same lens scaled by 1/10
+    assert residual == 0.0 and (published.width, published.height) == (64, 48)
+    assert published.fx == pytest.approx(50.0) and published.cy == pytest.approx((238.0 + 0.5) / 10 - 0.5)
+    np.testing.assert_array_equal(published.D, given.D)
+    native = estimator.camera_info(640, 480)[0]
+    np.testing.assert_allclose(native.K, given.K, rtol=1e-12)
+    np.testing.assert_array_equal(native.D, given.D)
+    # The pose chain goes on where it was, and a reset or a reload keeps the calibration.
+    after = estimator.process(START_NS + 3 * PERIOD_NS, frame(3))
+    assert after.status == "ok"
+    np.testing.assert_allclose(after.T_odom_base, before.T_odom_base @ after.T_prev_curr, atol=1e-9)
+    estimator.reset()
+    estimator.reload(model)
+    np.testing.assert_allclose(estimator.camera_info(640, 480)[0].K, given.K, rtol=1e-12)
+    with pytest.raises(TypeError, match="CameraCalibration"):
+        estimator.set_calibration({"fx": 1.0})
+
+
+def test_a_given_lens_the_bundle_adjustment_cannot_hold_is_converted_with_its_residual():
+    """plumb_bob's k3 (and rational_polynomial) is refitted as plumb_bob with k3 = 0, the camera the VO
+    optimises; the residual of that fit, checked here against OpenCV's projection, is reported."""
+    import cv2
+
+    from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry.calibration import as_vo_calibration
+
+    given = CameraCalibration(640, 480, [[500.0, 0, 321.5], [0, 502.0, 238.0], [0, 0, 1]], [-0.2, 0.05, 0.001, 0.002, 0.01])
+    converted, residual = as_vo_calibration(given)
+    assert converted.distortion_model == "plumb_bob" and converted.D[4] == 0.0
+    np.testing.assert_array_equal(converted.K, given.K)
+    rays = np.column_stack((np.random.default_rng(0).uniform(-0.55, 0.55, (500, 2)), np.ones(500)))
+    projected = [cv2.projectPoints(rays, np.zeros(3), np.zeros(3), c.K, c.D)[0].reshape(-1, 2) for c in (given, converted)]
+    rms = float(np.sqrt(np.mean(np.sum((projected[0] - projected[1]) ** 2, 1))))
+    assert 0.0 < residual < 0.5 and rms < 2 * residual + 0.05
+    estimator, _ = make_estimator(random_trajectory(2), calibration=given)
+    published, published_residual = estimator.camera_info()
+    assert published == converted and published_residual == pytest.approx(residual, rel=1e-12)
+
+
+def test_calibration_given_at_construction_is_published_without_a_learnt_camera():
+    from nocal_ros.lens import CameraCalibration
+
+    given = CameraCalibration.pinhole(64, 48, 40.0)
+    estimator, _ = make_estimator(random_trajectory(2), calibration=given)
+    assert estimator.camera_info() == (given, 0.0)  # the trajectory model carries no camera at all
+    without, _ = make_estimator(random_trajectory(2))
+    with pytest.raises(NocalError, match="no learnt camera"):
+        without.camera_info()
+
+
+def test_arm_poses_are_kept_bounded_validated_and_cleared_by_reset():
+    from nocal_ros.odometry.estimator import ARM_POSE_HISTORY
+
+    estimator, _ = make_estimator(random_trajectory(2))
+    T = make_transform(so3_exp(np.array([0.1, 0.2, 0.3])), np.array([0.4, 0.5, 0.6]))
+    for k in range(ARM_POSE_HISTORY + 5):
+        estimator.add_arm_pose(START_NS + k, T)
+    kept = estimator.arm_poses
+    assert len(kept) == ARM_POSE_HISTORY and kept[0][0] == START_NS + 5 and kept[-1][0] == START_NS + ARM_POSE_HISTORY + 4
+    np.testing.assert_array_equal(kept[-1][1], T)
+    for bad in (np.eye(3), np.full((4, 4), np.nan), np.diag([2.0, 1.0, 1.0, 1.0]), np.diag([-1.0, 1.0, 1.0, 1.0])):
+        with pytest.raises(ValueError):
+            estimator.add_arm_pose(START_NS, bad)
+    estimator.reset()
+    assert estimator.arm_poses == []
+
+
+def test_results_say_tracking_initialises_at_a_chain_start_and_the_scale_source():
+    T_w_c = random_trajectory(4, seed=3)
+    estimator, _ = make_estimator(T_w_c)
+    results = [estimator.process(START_NS + k * PERIOD_NS, frame(k)) for k in range(3)]
+    assert [r.tracking for r in results] == ["initialising", "ok", "ok"]
+    assert {r.scale_source for r in results} == {"pose_head"}
+    assert estimator.process(START_NS, frame(0)).tracking == "initialising"  # time went back: a new chain

@@ -196,22 +196,25 @@ def transform_msg_to_matrix(transform: Any) -> np.ndarray:
 def camera_info_to_calibration(msg: Any):
     """``sensor_msgs/CameraInfo`` (ROS 2 or ROS 1 field names) -> :class:`nocal_ros.lens.CameraCalibration`.
 
-    CameraInfo has no camera name; the header's frame id stands in for it.
+    CameraInfo has no camera name; the header's frame id stands in for it. R and P are kept.
     """
     from nocal_ros.lens import CameraCalibration
 
-    k = getattr(msg, "k", None)
-    d = getattr(msg, "d", None)
-    k = np.asarray(msg.K if k is None else k, dtype=np.float64).reshape(3, 3)
-    d = np.asarray(msg.D if d is None else d, dtype=np.float64).reshape(-1)
+    def field(name: str, shape: tuple[int, ...]) -> np.ndarray:
+        value = getattr(msg, name, None)
+        value = getattr(msg, name.upper()) if value is None else value
+        return np.asarray(value, dtype=np.float64).reshape(shape).copy()
+
     try:
         return CameraCalibration(
             width=int(msg.width),
             height=int(msg.height),
-            K=k.copy(),
-            D=d.copy(),
+            K=field("k", (3, 3)),
+            D=field("d", (-1,)),
             distortion_model=str(msg.distortion_model),
             camera_name=str(msg.header.frame_id) or "camera",
+            R=field("r", (3, 3)),
+            P=field("p", (3, 4)),
         )
     except ValueError as error:  # e.g. the all-zero K that uncalibrated camera drivers publish
         raise BagError(f"CameraInfo is not a usable calibration: {error}") from None
@@ -247,6 +250,7 @@ class BagWriter:
         self._staging: Path | None = None
         self._connections: dict[str, Any] = {}
         self._seq = 0
+        self.bytes_written = 0  # serialized message bytes so far (the bag's size, less its small index)
 
     # context management --------------------------------------------------------------------------
 
@@ -341,6 +345,7 @@ class BagWriter:
         else:
             data = self._typestore.serialize_cdr(msg, msg.__msgtype__)
         self._writer.write(connection, int(stamp_ns), data)
+        self.bytes_written += len(data)
 
     def _header(self, stamp_ns: int, frame_id: str):
         stamp_ns = int(stamp_ns)
@@ -420,13 +425,15 @@ class BagWriter:
     def write_camera_info(self, topic: str, stamp_ns: int, frame_id: str, calibration: Any) -> None:
         """Write a calibration (``width, height, K, D, distortion_model``) as ``sensor_msgs/CameraInfo``.
 
-        R is the identity and P = [K | 0]: a monocular camera that is not rectified.
+        R and P are the calibration's (``rectification``, ``projection``) when it has them, else the
+        identity and ``[K | 0]``: a monocular camera that is not rectified.
         """
         K = np.asarray(calibration.K, dtype=np.float64).reshape(3, 3)
         D = np.asarray(calibration.D, dtype=np.float64).reshape(-1)
-        P = np.hstack((K, np.zeros((3, 1))))
+        P = np.asarray(getattr(calibration, "projection", np.hstack((K, np.zeros((3, 1))))), dtype=np.float64)
+        R = np.asarray(getattr(calibration, "rectification", np.eye(3)), dtype=np.float64)
         roi = self._types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        matrices = {"d": D, "k": K.reshape(-1), "r": np.eye(3).reshape(-1), "p": P.reshape(-1)}
+        matrices = {"d": D, "k": K.reshape(-1), "r": R.reshape(-1), "p": P.reshape(-1)}
         if self._ros1:
             matrices = {name.upper(): value for name, value in matrices.items()}
         msg = self._types[CAMERA_INFO_TYPE](

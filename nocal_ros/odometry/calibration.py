@@ -72,11 +72,31 @@ def prior_calibration(width: int, height: int, distortion_model: str = "plumb_bo
     return CameraCalibration.pinhole(width, height, float(width), distortion_model=distortion_model, D=D, camera_name="nocal")
 
 
-def as_vo_calibration(calibration: CameraCalibration) -> CameraCalibration:
-    """A user's calibration in a model the bundle adjustment optimises (``k3`` must be 0 for plumb_bob)."""
-    if calibration.distortion_model not in VO_MODELS:
-        raise ValueError(f"the VO calibrates plumb_bob or equidistant cameras, not {calibration.distortion_model}")
-    return calibration
+def as_vo_calibration(calibration: CameraCalibration) -> tuple[CameraCalibration, float]:
+    """A user's calibration as the VO camera: ``(calibration, rms residual in pixels)``.
+
+    ``equidistant`` and ``plumb_bob`` with ``k3 = 0`` are taken as they are (residual 0). Other lenses
+    (``plumb_bob`` with ``k3``, ``rational_polynomial``) are refitted as ``plumb_bob`` with ``k3 = 0``,
+    the model the bundle adjustment optimises, by least squares on a grid of native pixels (the same
+    fit as for a learnt camera); the residual says how well it fits.
+    """
+    if not isinstance(calibration, CameraCalibration):
+        raise TypeError(f"a calibration must be a CameraCalibration, got {type(calibration).__name__}")
+    model = calibration.distortion_model
+    if model == "equidistant" or (model == "plumb_bob" and calibration.D[4] == 0.0):
+        return calibration, 0.0
+    from nocal_ros.camera import fit_distortion_coefficients
+    from nocal_ros.lens import distort_normalised, pixel_grid
+
+    pixels = pixel_grid(calibration.width, calibration.height).reshape(-1, 2)[::7]
+    undistorted = calibration.undistorted_normalised(pixels)
+    distorted = calibration.distorted_normalised(pixels)
+    valid = np.isfinite(undistorted).all(1)
+    K = calibration.K
+    D = fit_distortion_coefficients(undistorted[valid], distorted[valid], "plumb_bob", K[0, 0], K[1, 1], fix_k3=True)
+    residual = (distort_normalised(undistorted[valid], D, "plumb_bob") - distorted[valid]) * np.array([K[0, 0], K[1, 1]])
+    fitted = CameraCalibration(calibration.width, calibration.height, K, D, "plumb_bob", calibration.camera_name)
+    return fitted, float(np.sqrt(np.mean(np.sum(residual**2, -1))))
 
 
 def initial_information(calibration: CameraCalibration, source: str) -> np.ndarray:

@@ -82,7 +82,12 @@ import torch
 
 from nocal_ros.errors import NocalError
 from nocal_ros.geometry import invert_transform, nearest_rotation, so3_log
-from nocal_ros.odometry.calibration import OnlineCamera, calibration_from_learnt_camera, prior_calibration
+from nocal_ros.odometry.calibration import (
+    OnlineCamera,
+    as_vo_calibration,
+    calibration_from_learnt_camera,
+    prior_calibration,
+)
 from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
 from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale
@@ -100,7 +105,7 @@ LOST_STD = {"translation_m": 1.0, "rotation_rad": 0.5}
 #: Published poses kept per frame, for anchoring a new map at its first keyframe.
 POSE_HISTORY = 256
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
-ARM_HISTORY = 10000
+ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
 METHODS = ("vo", "pose_head")
 
@@ -247,10 +252,11 @@ class OdometryEstimator:
         self._T_base_cam = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
         self._T_cam_base = invert_transform(self._T_base_cam)
         self._given_calibration = calibration
+        self._given_vo_calibration = as_vo_calibration(calibration) if calibration is not None else None
         self._camera: OnlineCamera | None = None
         self._vo: VisualOdometry | None = None
-        self._arm_stamps: deque[int] = deque(maxlen=ARM_HISTORY)
-        self._arm_poses: deque[np.ndarray] = deque(maxlen=ARM_HISTORY)
+        self._arm_stamps: deque[int] = deque(maxlen=ARM_POSE_HISTORY)
+        self._arm_poses: deque[np.ndarray] = deque(maxlen=ARM_POSE_HISTORY)
         self.model: PoseModel
         self._runner: PoseRunner
         self._load(checkpoint)
@@ -327,6 +333,8 @@ class OdometryEstimator:
             self._anchor: np.ndarray | None = None  # T_odom_map of the current map
             self._anchor_map_id = -1
             self._scale = ScaleEstimate()
+            self._arm_stamps.clear()
+            self._arm_poses.clear()
             if self._vo is not None:
                 self._vo.reset()
 
@@ -365,7 +373,8 @@ class OdometryEstimator:
     def _starting_calibration(self, width: int, height: int) -> tuple["CameraCalibration", str, float]:
         given = self._given_calibration
         if given is not None:
-            return _resized(given, width, height, "the given calibration"), "file", 0.0
+            calibration, residual = self._given_vo_calibration
+            return _resized(calibration, width, height, "the given calibration"), "file", residual * width / calibration.width
         learnt = self.model.camera
         if learnt is not None and self.distortion_model == "plumb_bob":
             if abs(learnt.width / learnt.height - width / height) < 1e-3:
@@ -376,21 +385,20 @@ class OdometryEstimator:
         return prior_calibration(width, height, self.distortion_model), "prior", 0.0
 
     def set_calibration(self, calibration: "CameraCalibration") -> None:
-        """Restart the online camera from ``calibration`` (scaled to the frames' size); the pose is kept."""
-        from nocal_ros.odometry.calibration import as_vo_calibration
+        """Restart the online camera from ``calibration`` (scaled to the frames' size); the pose is kept.
 
-        try:
-            calibration = as_vo_calibration(calibration)
-        except ValueError as error:
-            raise NocalError(str(error)) from None
+        The calibration is kept through :meth:`reset` and :meth:`reload` (it is the camera's, not the
+        model's). A lens the bundle adjustment does not optimise is converted (:func:`as_vo_calibration`),
+        and :meth:`camera_info` reports the conversion's residual.
+        """
+        converted = as_vo_calibration(calibration)
         with self._lock:
-            self._given_calibration = calibration
+            self._given_calibration, self._given_vo_calibration = calibration, converted
             size = self.image_size
+            self._close_vo()
+            self._camera = None
             if size is not None:
-                self._close_vo()
-                self._camera = OnlineCamera(_resized(calibration, *size, "the given calibration"), "file", 0.0)
-            else:
-                self._camera = None
+                self._online_camera(*size)
 
     def camera_info(self, width: int | None = None, height: int | None = None) -> tuple["CameraCalibration", float]:
         """The current online camera and the residual of the conversion it started from (pixels).
@@ -408,7 +416,8 @@ class OdometryEstimator:
                 elif self._given_calibration is not None:
                     size = (self._given_calibration.width, self._given_calibration.height)
                 else:
-                    raise NocalError(f"model {self.model.model_id} has no camera yet: no frame seen and none given")
+                    raise NocalError(f"model {self.model.model_id} has no learnt camera and no frame was seen yet: "
+                                     "no camera to publish")
             camera = self._online_camera(*size)
             calibration, residual = camera.calibration, camera.residual_px
         if width and height and (int(width), int(height)) != (calibration.width, calibration.height):
@@ -428,13 +437,26 @@ class OdometryEstimator:
             return status
 
     def add_arm_pose(self, stamp_ns: int, T_base_cam: np.ndarray) -> None:
-        """The camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied)."""
+        """The camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied).
+
+        The last :data:`ARM_POSE_HISTORY` are kept; :meth:`reset` forgets them. Raises ValueError for
+        anything but a finite rigid transform.
+        """
         T = np.asarray(T_base_cam, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise ValueError(f"an arm pose must be a finite 4x4 transform, got {T.shape}")
+            raise ValueError(f"an arm pose must be a finite 4x4 transform, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ValueError("an arm pose must be a rigid transform (a rotation and a translation)")
         with self._lock:
             self._arm_stamps.append(int(stamp_ns))
             self._arm_poses.append(T.copy())
+
+    @property
+    def arm_poses(self) -> list[tuple[int, np.ndarray]]:
+        """The arm poses kept, ``[(stamp_ns, T_base_cam)]`` oldest first."""
+        with self._lock:
+            return list(zip(self._arm_stamps, (T.copy() for T in self._arm_poses)))
 
     def _arm_position(self, stamp_ns: int) -> np.ndarray | None:
         if not self._arm_stamps:
@@ -674,7 +696,7 @@ class OdometryEstimator:
         self._has_previous = True
         self._previous_stamp = stamp_ns
         unknown = np.eye(6) * UNKNOWN_VARIANCE
-        return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0)
+        return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, status, 0, 0.0, tracking="initialising")
 
     def _integrate(self, stamp_ns: int, T_ci_cj: np.ndarray, gap: int, inference_ms: float, status: str,
                    source: str, sigma_cam: np.ndarray, tracking: str = "ok", keyframe: bool = False) -> OdometryResult:

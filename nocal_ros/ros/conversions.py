@@ -76,10 +76,10 @@ def odometry_message(result: Any, stamp: Time, odom_frame: str, base_frame: str)
 
 
 def camera_info_message(calibration: Any, header: Header) -> CameraInfo:
-    """``sensor_msgs/CameraInfo`` of a :class:`~nocal_ros.lens.CameraCalibration`: R = I, P = [K | 0]
-    (a monocular camera that is not rectified), as camera_calibration writes it."""
+    """``sensor_msgs/CameraInfo`` of a :class:`~nocal_ros.lens.CameraCalibration`, full size, with its R and
+    P (the identity and ``[K | 0]`` for a monocular camera that is not rectified)."""
     K = np.asarray(calibration.K, dtype=np.float64).reshape(3, 3)
-    P = np.hstack((K, np.zeros((3, 1))))
+    P = np.asarray(calibration.projection, dtype=np.float64).reshape(3, 4)
     return CameraInfo(
         header=header,
         height=int(calibration.height),
@@ -87,7 +87,7 @@ def camera_info_message(calibration: Any, header: Header) -> CameraInfo:
         distortion_model=str(calibration.distortion_model),
         d=[float(v) for v in np.asarray(calibration.D).reshape(-1)],
         k=[float(v) for v in K.reshape(-1)],
-        r=[float(v) for v in np.eye(3).reshape(-1)],
+        r=[float(v) for v in np.asarray(calibration.rectification, dtype=np.float64).reshape(-1)],
         p=[float(v) for v in P.reshape(-1)],
         binning_x=0,
         binning_y=0,

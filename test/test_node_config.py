@@ -1,0 +1,59 @@
+"""config/odometry.yaml and config/trainer.yaml set exactly the parameters the nodes declare, with the
+declared types (a ROS parameter file with 1 where the node declares 1.0 fails at start on Jazzy).
+
+The nodes import rclpy, so their PARAMETERS tables are read from the source, not imported.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _ModuleNames(dict):
+    """Names the PARAMETERS table uses: literal module constants as they are, anything else a string."""
+
+    def __init__(self, tree: ast.Module) -> None:
+        super().__init__()
+        for node in tree.body:
+            if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+                try:
+                    self[node.targets[0].id] = ast.literal_eval(node.value)
+                except ValueError:
+                    self[node.targets[0].id] = "a string"  # e.g. DEFAULT_STORE = os.path.join(...)
+
+
+def declared(node_file: str) -> dict:
+    tree = ast.parse((ROOT / "nocal_ros" / "ros" / node_file).read_text())
+    for node in tree.body:
+        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "PARAMETERS":
+            return eval(compile(ast.Expression(node.value), node_file, "eval"), {}, _ModuleNames(tree))  # noqa: S307
+    raise AssertionError(f"no PARAMETERS table in {node_file}")
+
+
+def check(config: str, node_file: str, name: str, defaults) -> None:
+    parameters = yaml.safe_load((ROOT / "config" / config).read_text())[name]["ros__parameters"]
+    declared_names = set(defaults)
+    assert set(parameters) - declared_names - {"bags", "use_sim_time"} == set(), "set but never declared"
+    for key, value in parameters.items():
+        if key in defaults:
+            expected = type(defaults[key])
+            actual = type(value[0]) if isinstance(value, list) and isinstance(defaults[key], list) else type(value)
+            if isinstance(defaults[key], list):
+                expected = type(defaults[key][0])
+            assert actual is expected, f"{config}: {key} is {actual.__name__}, the node declares {expected.__name__}"
+    return set(parameters)
+
+
+def test_odometry_config_matches_the_node():
+    defaults = declared("odometry_node.py")
+    assert check("odometry.yaml", "odometry_node.py", "odometry_node", defaults) == set(defaults)  # documents all
+
+
+def test_trainer_config_matches_the_node():
+    defaults = {k: v[0] for k, v in declared("trainer_node.py").items()}
+    assert check("trainer.yaml", "trainer_node.py", "trainer_node", defaults) == set(defaults)
