@@ -29,7 +29,7 @@ setup(
         "tqdm",
         "scikit-image",
     ],
-    extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"]},
+    extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"], "compare": ["pycolmap==4.2.1", "evo", "matplotlib"]},
     zip_safe=True,
     maintainer="nocal_ros developers",
     maintainer_email="nocal@example.com",

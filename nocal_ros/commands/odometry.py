@@ -310,6 +310,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         "evaluated_poses": int(len(stamps)),
         "model": replay.model_id,
         "events": {k: int(v) for k, v in replay.counters.items()},
+        # Wall time of the replay (decoding, estimation, writing the bag), for tables beside other methods.
+        "seconds": float(replay.seconds),
+        "ms_per_frame": float(1e3 * replay.seconds / max(replay.frames_in, 1)),
     }
     if len(stamps) >= 2:
         report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
