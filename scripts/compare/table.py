@@ -3,7 +3,7 @@
     python scripts/compare/table.py [--no-motion BAG [--max-frames N]] [LABEL=]REPORT.json ...
 
 One row per report: method, focal error %, ``dr``, RPE per pair (RMSE, m / deg), APE after Sim(3)
-alignment (RMSE, m), wall time, and frames with a pose of frames in the bag. The label defaults to the
+alignment (RMSE, m), wall time (and the process's CPU time, which repeats on a shared machine), and frames with a pose of frames in the bag. The label defaults to the
 report's method (COLMAP and its settings; for ``nocal odometry`` whether two-view geometry was used).
 
 ``--no-motion BAG`` adds the row of an estimate that never moves, from the bag's ``/ground_truth/pose``
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-HEADER = ("| method | focal err | dr | RPE per pair m / deg | APE Sim(3) m | time | frames |\n"
+HEADER = ("| method | focal err | dr | RPE per pair m / deg | APE Sim(3) m | time (wall) | frames |\n"
           "|---|---|---|---|---|---|---|")
 
 
@@ -48,7 +48,8 @@ def report_row(label: str, report: dict) -> str:
         ape_text += f" (scale {ape['scale']:.3g})"
     seconds = report.get("seconds")
     frames = report.get("bag_frames")
-    time_text = f"{seconds:.1f} s ({1e3 * seconds / max(frames or 1, 1):.0f} ms/frame)" if seconds is not None else "-"
+    cpu = report.get("cpu_seconds")
+    time_text = "-" if seconds is None else f"{seconds:.1f} s" + ("" if cpu is None else f" ({cpu:.1f} s CPU)")
     posed = report.get("evaluated_poses", report.get("poses"))
     return f"| {label} | {focal} | {dr} | {rpe_text} | {ape_text} | {time_text} | {posed}/{frames} |"
 
