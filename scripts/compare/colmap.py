@@ -55,6 +55,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="COLMAP camera model: OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL, RADIAL, FULL_OPENCV, ... (default OPENCV)")
     parser.add_argument("--matcher", default="exhaustive", choices=("exhaustive", "sequential"))
     parser.add_argument("--overlap", type=int, default=10, help="sequential matcher: neighbours matched per frame")
+    parser.add_argument("--prior-focal-factor", type=float, default=None, metavar="F",
+                        help="start from f = F x the larger image side and let COLMAP treat it as a focal prior "
+                             "(COLMAP 4.2 marks fisheye pairs without one as degenerate; 1.2 is COLMAP's own default guess)")
     parser.add_argument("--refine-principal-point", action="store_true", help="refine cx, cy too (COLMAP's default: fixed at the centre)")
     parser.add_argument("--max-image-size", type=int, default=-1, help="SIFT on frames downscaled to this longer side (-1: native)")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per frame (COLMAP's default 8192)")
@@ -98,7 +101,8 @@ def write_frames(bag: Path, topic: str, max_frames: int | None, image_dir: Path)
     return names, np.asarray(stamps, dtype=np.int64), size
 
 
-def reconstruct(pycolmap, args: argparse.Namespace, workspace: Path, image_dir: Path, names: list[str]) -> tuple[dict, dict[str, float]]:
+def reconstruct(pycolmap, args: argparse.Namespace, workspace: Path, image_dir: Path, names: list[str],
+                size: tuple[int, int]) -> tuple[dict, dict[str, float]]:
     """Features, matches and incremental mapping; the reconstructions by index and each stage's seconds."""
     database = workspace / "database.db"
     database.unlink(missing_ok=True)
@@ -108,6 +112,10 @@ def reconstruct(pycolmap, args: argparse.Namespace, workspace: Path, image_dir: 
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = args.camera_model
+    if args.prior_focal_factor is not None:
+        # Given camera parameters make COLMAP's focal a prior; the rest is its usual uncalibrated start.
+        start = pycolmap.Camera.create_from_model_name(1, args.camera_model, args.prior_focal_factor * max(size), *size)
+        reader.camera_params = ",".join(repr(float(v)) for v in start.params)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = args.threads
     extraction.max_image_size = args.max_image_size
@@ -230,7 +238,7 @@ def run(args: argparse.Namespace) -> dict:
         print(f"{len(names)} frames {native_size[0]}x{native_size[1]} from {args.bag}; COLMAP {pycolmap.__version__}, "
               f"{args.camera_model}, {args.matcher} matching, principal point {'refined' if args.refine_principal_point else 'fixed'}, "
               f"{args.threads} thread(s)", flush=True)
-        reconstructions, stages = reconstruct(pycolmap, args, workspace, image_dir, names)
+        reconstructions, stages = reconstruct(pycolmap, args, workspace, image_dir, names, native_size)
         timing.update(stages)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         if not reconstructions:
@@ -259,7 +267,8 @@ def run(args: argparse.Namespace) -> dict:
     report = {
         "method": "colmap",
         "model": f"COLMAP {pycolmap.__version__} {args.camera_model} {args.matcher}"
-                 f" pp {'refined' if args.refine_principal_point else 'fixed'}",
+                 f" pp {'refined' if args.refine_principal_point else 'fixed'}"
+                 + ("" if args.prior_focal_factor is None else f" focal prior {args.prior_focal_factor:g}x"),
         "bag_frames": len(names),
         "poses": int(len(indices)),
         "events": {"frames": len(names), "registered": int(len(indices)), "unregistered": len(unregistered),
@@ -276,7 +285,8 @@ def run(args: argparse.Namespace) -> dict:
         "settings": {"camera_model": args.camera_model, "matcher": args.matcher, "overlap": args.overlap if args.matcher == "sequential" else None,
                      "refine_principal_point": bool(args.refine_principal_point), "refine_focal_length": True,
                      "refine_extra_params": True, "max_image_size": args.max_image_size, "max_features": args.max_features,
-                     "threads": args.threads, "seed": args.seed, "prior": "COLMAP default (focal 1.2 x max(width, height), centred, no distortion)"},
+                     "threads": args.threads, "seed": args.seed, "prior": "COLMAP default (focal 1.2 x max(width, height), centred, no distortion)" if args.prior_focal_factor is None
+                     else f"focal {args.prior_focal_factor} x max(width, height) as a focal prior, centred, no distortion"},
         "timing_s": {k: float(v) for k, v in timing.items()},
         "camera": {"model": camera.model.name, "params": [float(v) for v in camera.params], "width": camera.width, "height": camera.height},
         "unregistered_frames": unregistered,
