@@ -62,6 +62,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--max-image-size", type=int, default=-1, help="SIFT on frames downscaled to this longer side (-1: native)")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per frame (COLMAP's default 8192)")
     parser.add_argument("--threads", type=int, default=1, help="COLMAP threads (default 1, as nocal odometry --threads 1)")
+    parser.add_argument("--max-mapping-seconds", type=int, default=-1,
+                        help="stop COLMAP's incremental mapping after this long and keep what it has (-1: no limit)")
     parser.add_argument("--seed", type=int, default=0, help="COLMAP's RANSAC and mapper seed")
     parser.add_argument("--keep-workspace", action="store_true", help="keep frames and database in DIR/workspace")
     parser.add_argument("--overwrite", action="store_true", help="replace outputs already in --out")
@@ -144,6 +146,7 @@ def reconstruct(pycolmap, args: argparse.Namespace, workspace: Path, image_dir: 
     mapping.ba_refine_focal_length = True
     mapping.ba_refine_extra_params = True
     mapping.ba_refine_principal_point = bool(args.refine_principal_point)
+    mapping.max_runtime_seconds = int(args.max_mapping_seconds)
     sparse = workspace / "sparse"
     if sparse.exists():
         shutil.rmtree(sparse)
@@ -285,7 +288,7 @@ def run(args: argparse.Namespace) -> dict:
         "settings": {"camera_model": args.camera_model, "matcher": args.matcher, "overlap": args.overlap if args.matcher == "sequential" else None,
                      "refine_principal_point": bool(args.refine_principal_point), "refine_focal_length": True,
                      "refine_extra_params": True, "max_image_size": args.max_image_size, "max_features": args.max_features,
-                     "threads": args.threads, "seed": args.seed, "prior": "COLMAP default (focal 1.2 x max(width, height), centred, no distortion)" if args.prior_focal_factor is None
+                     "threads": args.threads, "seed": args.seed, "max_mapping_seconds": args.max_mapping_seconds, "prior": "COLMAP default (focal 1.2 x max(width, height), centred, no distortion)" if args.prior_focal_factor is None
                      else f"focal {args.prior_focal_factor} x max(width, height) as a focal prior, centred, no distortion"},
         "timing_s": {k: float(v) for k, v in timing.items()},
         "camera": {"model": camera.model.name, "params": [float(v) for v in camera.params], "width": camera.width, "height": camera.height},
