@@ -65,6 +65,20 @@ def test_colmap_script_without_pycolmap_says_how_to_install(tmp_path, monkeypatc
     assert len(error.splitlines()) == 1 and "pip install pycolmap==4.2.1" in error
 
 
+def test_colmap_script_refuses_bad_input_in_one_line(tmp_path, capsys):
+    pytest.importorskip("pycolmap")
+    script = load_script("colmap")
+    assert script.main([str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 1
+    assert "no such bag" in capsys.readouterr().err
+    (tmp_path / "corrupt.mcap").write_bytes(b"not a bag at all")
+    assert script.main([str(tmp_path / "corrupt.mcap"), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "corrupt.mcap" in error
+    assert not [p for p in (tmp_path / "out").iterdir()]  # the frames' workspace is removed
+    assert script.main([str(tmp_path / "corrupt.mcap"), "--out", str(tmp_path / "out"), "--camera-model", "FOV"]) == 1
+    assert "FOV: no ROS equivalent" in capsys.readouterr().err
+
+
 def moving_sequence(n=12):
     """Tiny frames with known camera poses: a curve with rotation about y."""
     poses = np.stack([make_transform(

@@ -213,20 +213,21 @@ def evaluate(estimate: np.ndarray, stamps_ns: np.ndarray, truth_poses: np.ndarra
 
 
 def run(args: argparse.Namespace) -> dict:
-    from nocal_ros.colmap_camera import calibration_from_pycolmap
+    from nocal_ros.colmap_camera import SUPPORTED_MODELS, calibration_from_pycolmap
     from nocal_ros.commands.odometry import write_tum
     from nocal_ros.data.bags import bag_topics, read_camera_info, read_poses
     from nocal_ros.errors import BagError, NocalError
 
     pycolmap = import_pycolmap()
+    args.camera_model = args.camera_model.upper()
+    if args.camera_model not in SUPPORTED_MODELS:
+        raise NocalError(f"--camera-model {args.camera_model}: no ROS equivalent to score it; use one of {', '.join(SUPPORTED_MODELS)}")
     if not args.bag.exists():
         raise BagError(f"{args.bag}: no such bag (file or directory does not exist)")
     existing = [name for name in OUTPUT_NAMES if (args.out / name).exists()]
     if existing and not args.overwrite:
         raise NocalError(f"{args.out}: already holds {', '.join(existing)}; pass --overwrite to replace them")
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.threads > 0:
-        os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
 
     if not args.verbose:
         pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
@@ -245,7 +246,8 @@ def run(args: argparse.Namespace) -> dict:
         timing.update(stages)
         seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
         if not reconstructions:
-            raise NocalError(f"{args.bag}: COLMAP registered no frames ({len(names)} frames; {args.camera_model}, {args.matcher})")
+            hint = "; COLMAP's fisheye models need a focal prior (--prior-focal-factor)" if "FISHEYE" in args.camera_model and args.prior_focal_factor is None else ""
+            raise NocalError(f"{args.bag}: COLMAP registered no frames ({len(names)} frames; {args.camera_model}, {args.matcher}){hint}")
         sizes = {key: rec.num_reg_images() for key, rec in reconstructions.items()}
         best = max(sizes, key=lambda key: sizes[key])
         reconstruction = reconstructions[best]
