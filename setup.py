@@ -99,7 +99,7 @@ setup(
         "scikit-image",
         "gtsam==4.3.0",
     ],
-    extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"]},
+    extras_require={"eval": ["evo", "matplotlib"], "test": ["pytest", "kornia"], "compare": ["pycolmap==4.2.1", "evo", "matplotlib"]},
     zip_safe=False,
     maintainer="nocal_ros developers",
     maintainer_email="nocal@example.com",

@@ -1,0 +1,113 @@
+"""scripts/compare: COLMAP on a rendered bag scored like nocal odometry, and the table of reports.
+
+The COLMAP test needs the optional pycolmap (``pip install -r requirements-compare.txt``) and skips
+without it; the others run everywhere.
+"""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nocal_ros import evaluation
+from nocal_ros.data.bags import write_sequence
+from nocal_ros.data.sequence import FrameSequence
+from nocal_ros.geometry import make_transform
+from nocal_ros.lens import CameraCalibration
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts" / "compare"
+# The held-out camera of the comparison (config/cameras/heldout_640x480.yaml) at 160x120.
+CAMERA = CameraCalibration(640, 480, [[455.0, 0, 331.4], [0, 457.3, 231.6], [0, 0, 1]], [-0.19, 0.055, 0.0007, -0.0004, 0.0]).scaled(160, 120)
+
+
+def load_script(name):
+    spec = importlib.util.spec_from_file_location(f"compare_{name}", SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_colmap_on_a_rendered_bag_registers_frames_and_calibrates(tmp_path):
+    pytest.importorskip("pycolmap")
+    from nocal_ros.data.synthetic import render_sequence
+
+    bag = write_sequence(render_sequence(CAMERA, 30, seed=5, split="test"), tmp_path / "bag")
+    out = tmp_path / "colmap"
+    run = subprocess.run([sys.executable, str(SCRIPTS / "colmap.py"), str(bag), "--out", str(out), "--threads", "1"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["bag_frames"] == 30 and report["events"]["registered"] >= 25
+    assert report["events"]["unregistered"] == 30 - report["events"]["registered"]
+    # Measured on this bag: focal 0.36 %, RPE 0.095 deg, APE Sim(3) 0.0067 m (COLMAP's prior focal, 1.2 x 160,
+    # is 69 % off); the bounds leave a factor of 3-4 for other builds.
+    assert report["calibration"]["focal_error_percent"] < 1.5
+    assert report["calibration"]["fx_true"] == pytest.approx(CAMERA.fx)
+    # The trajectory is scored over the registered frames, scale-corrected, with nocal odometry's code.
+    assert report["evaluated_poses"] == report["events"]["registered"] and report["scale_correction"] > 0
+    assert report["rpe"]["rotation_deg"]["rmse"] < 0.3 and report["ape_sim3"]["translation_m"]["rmse"] < 0.02
+    saved = CameraCalibration.load(out / "calibration.yaml")
+    assert (saved.width, saved.height) == (160, 120) and saved.distortion_model == "plumb_bob"
+    assert "registered" in run.stdout and "scale" in run.stdout
+    table = subprocess.run([sys.executable, str(SCRIPTS / "table.py"), str(out / "report.json")], capture_output=True, text=True)
+    assert table.returncode == 0 and f"{report['calibration']['focal_error_percent']:.2f} %" in table.stdout
+
+
+def test_colmap_script_without_pycolmap_says_how_to_install(tmp_path, monkeypatch, capsys):
+    script = load_script("colmap")
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap now raises ImportError
+    assert script.main([str(tmp_path / "bag"), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "pip install pycolmap==4.2.1" in error
+
+
+def test_colmap_script_refuses_bad_input_in_one_line(tmp_path, capsys):
+    pytest.importorskip("pycolmap")
+    script = load_script("colmap")
+    assert script.main([str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 1
+    assert "no such bag" in capsys.readouterr().err
+    (tmp_path / "corrupt.mcap").write_bytes(b"not a bag at all")
+    assert script.main([str(tmp_path / "corrupt.mcap"), "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "corrupt.mcap" in error
+    assert not [p for p in (tmp_path / "out").iterdir()]  # the frames' workspace is removed
+    assert script.main([str(tmp_path / "corrupt.mcap"), "--out", str(tmp_path / "out"), "--camera-model", "FOV"]) == 1
+    assert "FOV: no ROS equivalent" in capsys.readouterr().err
+
+
+def moving_sequence(n=12):
+    """Tiny frames with known camera poses: a curve with rotation about y."""
+    poses = np.stack([make_transform(
+        np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]), np.array([0.03 * i, 0.01 * i**1.5, 0.0]))
+        for i, a in enumerate(np.radians(2.0) * np.arange(n))])
+    images = np.random.default_rng(0).integers(0, 255, (n, 6, 8, 3), dtype=np.uint8)
+    stamps = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 100_000_000
+    return FrameSequence(images, stamps, np.full((n, 4, 4), np.nan), poses, CameraCalibration.pinhole(8, 6, 7.0))
+
+
+def test_table_rows_and_the_no_motion_row_from_the_ground_truth(tmp_path, capsys):
+    sequence = moving_sequence()
+    bag = write_sequence(sequence, tmp_path / "bag")
+    truth = sequence.ground_truth
+    # A report as nocal odometry writes one (the same evaluation code), with a slightly wrong trajectory.
+    estimate = truth.copy()
+    estimate[:, :3, 3] *= 0.9
+    report = {"bag_frames": 12, "poses": 12, "evaluated_poses": 12, "model": "m", "events": {"two_view_pairs": 11},
+              "seconds": 1.5, **evaluation.summary(evaluation.trajectory_errors(sequence.stamps_ns, estimate, truth)),
+              "calibration": evaluation.calibration_errors(CameraCalibration.pinhole(8, 6, 7.7), sequence.calibration)}
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    table = load_script("table")
+    assert table.main([f"mine={tmp_path / 'report.json'}", str(tmp_path / "report.json"), "--no-motion", str(bag)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 5 and lines[2].startswith("| mine | 10.00 % |") and lines[3].startswith("| nocal odometry (two-view) |")
+    assert f"{report['rpe']['translation_m']['rmse']:.4f} / {report['rpe']['rotation_deg']['rmse']:.3f}" in lines[2]
+    # No motion: the RPE is the true step itself; the APE the positions' RMS distance from their centroid.
+    steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
+    positions = truth[:, :3, 3]
+    spread = np.sqrt(np.mean(np.sum((positions - positions.mean(0)) ** 2, axis=1)))
+    assert lines[4].startswith("| no motion") and f"| {np.sqrt(np.mean(steps**2)):.4f} / 2.000 | {spread:.4f} |" in lines[4]
+    assert lines[4].endswith("| 12/12 |")
