@@ -342,8 +342,17 @@ def format_report(report: dict[str, Any]) -> str:
                 lines.append(
                     f"  {label + ' ' + unit:<22} {st['mean']:>10.4f} {st['std']:>10.4f} {st['rmse']:>10.4f} {st['max']:>10.4f} {st['count']:>8d}"
                 )
+        tracked = report.get("rpe_tracked")
+        if tracked and "rotation_deg" in tracked:
+            for unit_key, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
+                st = tracked[unit_key]
+                lines.append(f"  {'RPE tracked ' + unit:<22} {st['mean']:>10.4f} {'':>10} {st['rmse']:>10.4f} {st['max']:>10.4f} "
+                             f"{tracked['pairs']:>8d}  (pairs of tracked frames)")
         if report.get("ape_sim3") and "scale" in report["ape_sim3"]:
             lines.append(f"  Sim(3) alignment scale {report['ape_sim3']['scale']:>10.4f}")
+    for key, label in (("tracking", "tracking"), ("scale_source", "scale from")):
+        if isinstance(report.get(key), dict):
+            lines.append(f"{label}: " + ", ".join(f"{k} {v}" for k, v in report[key].items()))
     facts = [f"{k}: {v}" for k, v in report.items() if not isinstance(v, (dict, list)) and v is not None]
     return "\n".join(facts + lines)
 

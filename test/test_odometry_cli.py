@@ -128,6 +128,11 @@ def test_replay_writes_every_output_readable_by_rosbags(tmp_path, learnt_camera)
     assert report["rpe"]["translation_m"]["rmse"] < 1e-4 and report["rpe"]["rotation_deg"]["rmse"] < 1e-2
     assert report["ape_se3"]["translation_m"]["rmse"] < 1e-4
     assert abs(report["ape_sim3"]["scale"] - 1) < 1e-3
+    # The first frame starts the odometry: 9 of the 10 pairs are between tracked frames.
+    assert report["tracking"] == {"initialising": 1, "ok": 10, "lost": 0}
+    assert (report["rpe_tracked"]["pairs"], report["rpe_tracked"]["of_pairs"]) == (9, 10)
+    assert report["rpe_tracked"]["rotation_deg"]["max"] < 1e-2
+    assert report["scale_source"] == {"pose_head": 11} and report["arm_poses"] == 0
     calibration = report["calibration"]
     assert calibration["focal_error_px"] < 1e-6  # the learnt camera was built from the true K
     assert 0 < calibration["dr"] < 0.01 and calibration["fit_residual_px"] == replay.calibration_residual_px

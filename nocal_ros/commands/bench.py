@@ -6,7 +6,12 @@ For each device (CPU, and CUDA when present) it prints:
 * the pose head at batch 32: pairs per second;
 * the estimator end to end per frame: decoding a ``sensor_msgs/Image`` at the native resolution,
   resizing to the training resolution, the pose head on (previous, current), pose integration and
-  covariance, i.e. everything the odometry node does between receiving a message and publishing.
+  covariance, i.e. everything the odometry node does between receiving a message and publishing;
+* the keyframe VO (``--vo``, on by default) on a rendered camera motion (or ``--bag``'s images): the
+  tracking thread's cost per frame (frontend and PnP), the local mapping's per keyframe (the bundle
+  adjustment alone, and with triangulation), the whole estimator per frame, and a replay at
+  ``--rate`` Hz in real time with mapping in its worker, the way the node runs it: frames that arrive
+  while one is being processed replace the waiting one and are counted as dropped.
 
 On CUDA the estimator runs with CUDA graphs and pinned memory (as the node does), and in half
 precision too, with the pose difference half precision makes against fp32 on the same frames.
@@ -40,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=arg.thread_count, default=0, help="torch CPU threads (0: leave torch's default)")
     parser.add_argument("--layout", default="channels_last", choices=("channels_last", "contiguous"),
                         help="memory layout of the estimator's convolutions")
+    parser.add_argument("--vo", default=True, action=argparse.BooleanOptionalAction,
+                        help="time the keyframe VO on a camera motion (default: on)")
+    parser.add_argument("--vo-frames", type=arg.positive_int, default=120,
+                        help="frames of the VO runs (rendered at --native unless --bag)")
+    parser.add_argument("--bag", default="", help="take the VO's frames from this bag's images instead of rendering")
+    parser.add_argument("--rate", type=arg.positive_float, default=30.0, help="real-time replay rate (Hz) of the VO")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
 
 
@@ -134,19 +145,14 @@ def _rendered_frames(native: tuple[int, int], count: int) -> list[np.ndarray]:
 
 
 def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup: int,
-                    precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True,
-                    frames: list[np.ndarray] | None = None) -> tuple[dict[str, Any], np.ndarray]:
-    """Per-frame latency of decode + OdometryEstimator.process; also returns the estimated poses.
-
-    Without ``frames`` the pose head path alone is timed (two-view geometry off); with rendered
-    ``frames`` two-view geometry runs too (when the model has a camera).
-    """
+                    precision: str = "fp32", cuda_graphs: bool = True, channels_last: bool = True) -> tuple[dict[str, Any], np.ndarray]:
+    """Per-frame latency of decode + the pose head path of ``OdometryEstimator.process``; also returns the poses."""
     from nocal_ros.data.bags import decode_image
     from nocal_ros.odometry import OdometryEstimator
 
     estimator = OdometryEstimator(pose_model, precision=precision, cuda_graphs=cuda_graphs,
-                                  channels_last=channels_last, method="vo" if frames is not None else "pose_head")
-    frames = frames if frames is not None else _frames(native, 16)
+                                  channels_last=channels_last, method="pose_head")
+    frames = _frames(native, 16)
     messages = [_image_message(frame, 0) for frame in frames]
     period = 33_333_333
     state = {"k": 0}
@@ -165,6 +171,100 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
                  layout="channels_last" if channels_last else "contiguous",
                  keyframes=estimator.counters.keyframes, pairs=estimator.counters.pairs)
     return stats, np.asarray(poses)
+
+
+def _vo_frames(native: tuple[int, int], count: int, bag: str) -> tuple[list[np.ndarray], str]:
+    if not bag:
+        return _rendered_frames(native, count), f"rendered demo camera at {native[0]}x{native[1]}"
+    from nocal_ros.data.bags import read_sequence
+
+    sequence = read_sequence(bag, pose_source="none", max_frames=count)
+    images = list(sequence.images)
+    return images, f"{bag} ({images[0].shape[1]}x{images[0].shape[0]})"
+
+
+def _percentiles(values: list[float] | np.ndarray) -> dict[str, float] | None:
+    values = np.asarray(values, dtype=np.float64)
+    if not len(values):
+        return None
+    return {"median_ms": float(np.median(values)), "p90_ms": float(np.percentile(values, 90)),
+            "max_ms": float(values.max()), "count": int(len(values))}
+
+
+def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) -> dict[str, Any]:
+    """The keyframe VO's costs on ``frames`` (see the module notes); the first ``warmup`` frames'
+    tracking times are left out (they hold the map's initialisation)."""
+    import threading
+
+    from nocal_ros.data.bags import decode_image
+    from nocal_ros.odometry import FrameMailbox, OdometryEstimator
+
+    messages = [_image_message(frame, 0) for frame in frames]
+    period_ns = int(round(1e9 / rate_hz))
+
+    # In order, mapping inline: every frame and every keyframe timed, nothing dropped.
+    estimator = OdometryEstimator(pose_model, method="vo", synchronous_mapping=True)
+    per_frame: list[float] = []
+    for k, message in enumerate(messages):
+        start = time.perf_counter()
+        estimator.process(k * period_ns, decode_image(message), encoding="rgb8")
+        per_frame.append((time.perf_counter() - start) * 1e3)
+    timings = estimator.timings()
+    skip = min(warmup, max(len(frames) - 10, 0))
+    mapping_inline = sum(timings["mapping"])
+    result: dict[str, Any] = {
+        "frames": len(frames),
+        "tracking": _percentiles(timings["tracking"][skip:]),
+        "bundle_adjustment": _percentiles(timings["bundle_adjustment"]),
+        "mapping": _percentiles(timings["mapping"]),
+        # The estimator's whole per-frame cost with mapping inline (decode, pose head ring, tracking,
+        # the keyframes' mapping): what a replay with --synchronous mapping pays per frame on average.
+        "estimator_inline_mean_ms": float(np.mean(per_frame)),
+        "estimator_without_mapping": _percentiles(np.asarray(per_frame[skip:]) if not mapping_inline else []),
+        "keyframes": int(estimator.counters.keyframes),
+        "tracking_states": dict(vars(estimator.counters)),
+    }
+    estimator.close()
+
+    # In real time, mapping in its worker: frames arrive every 1/rate s; the worker takes the newest.
+    estimator = OdometryEstimator(pose_model, method="vo")
+    mailbox = FrameMailbox(latest_only=True)
+    latencies: list[float] = []
+    processed = [0]
+
+    def work() -> None:
+        while True:
+            item = mailbox.get(timeout=0.5)
+            if item is None:
+                return
+            arrived, stamp_ns, message = item
+            estimator.process(stamp_ns, decode_image(message), encoding="rgb8")
+            latencies.append((time.perf_counter() - arrived) * 1e3)
+            processed[0] += 1
+
+    worker = threading.Thread(target=work, name="bench_vo_worker", daemon=True)
+    worker.start()
+    start = time.perf_counter()
+    for k, message in enumerate(messages):
+        due = start + k / rate_hz
+        pause = due - time.perf_counter()
+        if pause > 0:
+            time.sleep(pause)
+        mailbox.put((time.perf_counter(), k * period_ns, message))
+    mailbox.close()
+    worker.join()
+    estimator.wait_for_mapping(timeout=60.0)
+    timings = estimator.timings()
+    result["realtime"] = {
+        "rate_hz": float(rate_hz), "frames_sent": len(messages), "frames_processed": processed[0],
+        "frames_dropped": int(mailbox.dropped), "latency": _percentiles(latencies),
+        "bundle_adjustment": _percentiles(timings["bundle_adjustment"]),
+        "keyframes": int(estimator.counters.keyframes),
+        "keyframes_merged": int(estimator._vo.mapping.merged) if estimator._vo is not None else 0,
+        "tracking_states": dict(vars(estimator.counters)),
+    }
+    estimator.close()
+    return result
 
 
 def _pose_difference(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
@@ -203,9 +303,10 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         # The pose head alone first: the estimator converts the model's weights to its layout.
         entry["pose_head"] = bench_pose_head(pose_model, args.iterations, args.warmup)
         entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup, channels_last=layout)
-        if pose_model.camera is not None:
-            entry["estimator_two_view"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
-                                                             channels_last=layout, frames=_rendered_frames(native, 16))
+        if args.vo:
+            frames, source = _vo_frames(native, args.vo_frames, args.bag)
+            entry["vo"] = bench_vo(pose_model, frames, min(args.warmup, 20), args.rate)
+            entry["vo"]["source"] = source
         if device.type == "cuda":
             entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
                                                           cuda_graphs=False, channels_last=layout)
@@ -227,7 +328,7 @@ def format_bench(report: dict[str, Any]) -> str:
         lines.append(f"  pose head, batch 1:   median {head['batch1']['median_ms']:.3f} ms, p90 {head['batch1']['p90_ms']:.3f} ms per pair")
         lines.append(f"  pose head, batch 32:  {head['batch32']['pairs_per_s']:.0f} pairs/s "
                      f"({head['batch32']['median_ms']:.2f} ms per batch)")
-        for key, label in (("estimator", "estimator"), ("estimator_two_view", "estimator + two-view"),
+        for key, label in (("estimator", "estimator (pose head alone)"),
                            ("estimator_eager", "estimator, no graphs"),
                            ("estimator_fp16", "estimator, fp16")):
             if key in entry:
@@ -236,11 +337,35 @@ def format_bench(report: dict[str, Any]) -> str:
                 if "difference_vs_fp32" in e:
                     d = e["difference_vs_fp32"]
                     extra = f" (vs fp32: {d['max_translation_mm']:.3f} mm, {d['max_rotation_deg']:.4f} deg max)"
-                what = "decode + resize + pose head + integration" + (" + tracking and two-view fit; rendered frames"
-                                                                      if key == "estimator_two_view" else "")
+                what = "decode + resize + pose head + integration"
                 lines.append(f"  {label + ':':<22}median {e['median_ms']:.3f} ms, p90 {e['p90_ms']:.3f} ms per frame "
                              f"({what}; {e['layout']}){extra}")
+        if "vo" in entry:
+            lines += _format_vo(entry["vo"])
     return "\n".join(lines)
+
+
+def _format_vo(vo: dict[str, Any]) -> list[str]:
+    def figure(stats: dict[str, float] | None, unit: str = "per frame") -> str:
+        if not stats:
+            return "none"
+        return f"median {stats['median_ms']:.1f} ms, p90 {stats['p90_ms']:.1f} ms {unit} ({stats['count']})"
+
+    states = vo["tracking_states"]
+    realtime = vo["realtime"]
+    lines = [
+        f"  keyframe VO on {vo['frames']} frames of {vo['source']}: {vo['keyframes']} keyframes, "
+        f"{states.get('maps', 0)} map(s), {states.get('lost_frames', 0)} lost frames",
+        f"    tracking (frontend + PnP):           {figure(vo['tracking'])}",
+        f"    bundle adjustment:                   {figure(vo['bundle_adjustment'], 'per keyframe')}",
+        f"    local mapping (with triangulation):  {figure(vo['mapping'], 'per keyframe')}",
+        f"    estimator, mapping inline:           mean {vo['estimator_inline_mean_ms']:.1f} ms per frame",
+        f"    real time at {realtime['rate_hz']:g} Hz, mapping in its worker: {realtime['frames_processed']} of "
+        f"{realtime['frames_sent']} frames processed, {realtime['frames_dropped']} dropped; latency "
+        f"{figure(realtime['latency'])}; bundle adjustment {figure(realtime['bundle_adjustment'], 'per solve')}, "
+        f"{realtime['keyframes_merged']} keyframes merged into a later solve",
+    ]
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:

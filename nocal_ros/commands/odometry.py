@@ -339,6 +339,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     poses_base: list[np.ndarray] = []
     poses_cam: list[np.ndarray] = []
     tracking: list[str] = []
+    scale_sources: list[str] = []
     frames_in = 0
     start, start_cpu = time.perf_counter(), time.process_time()
     with BagWriter(stage["odometry"], storage=storage) as writer:
@@ -369,6 +370,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
             poses_base.append(result.T_odom_base)
             poses_cam.append(result.T_odom_cam)
             tracking.append(result.tracking)
+            scale_sources.append(result.scale_source)
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
     all_stamps = np.asarray(stamps, dtype=np.int64)
     segments = time_segments(all_stamps)
@@ -391,6 +393,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
         calibration_residual_px=residual, seconds=seconds, cpu_seconds=cpu_seconds,
         extras={"poses": len(all_stamps), "time_segments": len(segments),
                 "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
+                "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
                 "calibration_status": estimator.calibration_status()},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
@@ -473,6 +476,15 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     tracking = replay.extras.get("tracking") or []
     if tracking:
         report["tracking"] = {state: int(sum(t == state for t in tracking)) for state in ("initialising", "ok", "lost")}
+        if len(stamps) >= 2 and len(tracking) == len(replay.stamps_ns):
+            report["rpe_tracked"] = _tracked_rpe(replay, stamps, estimate, T_gt, tracking)
+    scale_sources = replay.extras.get("scale_source") or []
+    if scale_sources:
+        # What made the translation metric, per published pose: the arm's similarity fit, the pose head's
+        # lengths, or nothing (unit-less map).
+        report["scale_source"] = {source: int(sum(s == source for s in scale_sources))
+                                  for source in sorted(set(scale_sources))}
+        report["arm_poses"] = int(replay.extras.get("arm_poses", 0))
     if replay.extras.get("calibration_status"):
         report["calibration_status"] = replay.extras["calibration_status"]
     if truth.calibration is not None and calibration is not None:
@@ -480,6 +492,28 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report["calibration"]["fit_residual_px"] = float(replay.calibration_residual_px or 0.0)
         report["calibration"]["distortion_model"] = calibration.distortion_model
     return report
+
+
+def _tracked_rpe(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
+                 tracking: list[str]) -> dict[str, Any]:
+    """RPE over the consecutive pairs both of whose poses came from a tracked map ("ok"), with their count.
+
+    The frames of an initialisation and the lost frames are bridged by rotation-only geometry or the
+    pose head; this separates the map's own accuracy from theirs.
+    """
+    from nocal_ros import evaluation
+
+    state = dict(zip(replay.stamps_ns.tolist(), tracking))
+    ok = np.array([state.get(int(stamp)) == "ok" for stamp in stamps])
+    both = ok[:-1] & ok[1:]
+    result: dict[str, Any] = {"pairs": int(both.sum()), "of_pairs": int(len(both))}
+    if both.any():
+        rpe = evaluation.relative_pose_error(estimate, T_gt, delta=1)
+        for key in ("translation_m", "rotation_deg"):
+            errors = np.asarray(rpe[key + "_per_pair"])[both]
+            result[key] = {"rmse": float(np.sqrt(np.mean(errors**2))), "mean": float(errors.mean()),
+                           "median": float(np.median(errors)), "max": float(errors.max())}
+    return result
 
 
 def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:

@@ -73,6 +73,9 @@ a landmark that crosses behind a camera during the solve is zeroed the same way 
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -383,8 +386,9 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
     parameters.setRelativeErrorTol(float(problem.relative_tolerance))
     parameters.setAbsoluteErrorTol(0.0)
     try:
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters)
-        result = optimizer.optimize()
+        with _quiet_native_stdout():
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters)
+            result = optimizer.optimize()
         iterations = int(optimizer.iterations())
     except RuntimeError as error:
         return _failed(problem, start_errors, f"GTSAM: {' '.join(str(error).split())[:300]}", started)
@@ -411,7 +415,8 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
         try:
             distance = np.linalg.norm(points[point_index] - poses[keyframe_index, :3, 3], axis=1)
             landmark_sigma = _LANDMARK_PRIOR_SCALE * max(float(np.median(distance)), 1e-6)
-            marginals = _marginals(gtsam, graph, result, used, errors, len(points), landmark_sigma)
+            with _quiet_native_stdout():
+                marginals = _marginals(gtsam, graph, result, used, errors, len(points), landmark_sigma)
             if camera_wanted:
                 tangent = marginals.marginalCovariance(K(0))
                 camera_covariance = tangent[np.ix_(_TANGENT_OF_PARAMETER, _TANGENT_OF_PARAMETER)]
@@ -446,6 +451,28 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
         residuals_px=errors,
         covariance_cpu_seconds=time.thread_time() - covariance_started,
     )
+
+
+@contextlib.contextmanager
+def _quiet_native_stdout():
+    """Send the C++ library's standard output to /dev/null for the block.
+
+    GTSAM's GeneralSFMFactor prints a line to ``std::cout`` for every landmark that a trial step moves
+    behind a camera (hundreds per replay on the fisheye bag), which it then handles itself.
+    """
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError, AttributeError):  # no file descriptor 1 (an embedding host): leave it
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def _marginals(gtsam, graph, result, used: np.ndarray, errors: np.ndarray, landmarks: int, landmark_sigma: float):

@@ -436,6 +436,23 @@ class OdometryEstimator:
             status["keyframes"] = self.counters.keyframes
             return status
 
+    def timings(self) -> dict[str, list[float]]:
+        """The VO's recent costs in milliseconds (empty lists before the first frame or with ``pose_head``):
+        ``tracking`` per frame (frontend, PnP, keyframe decision; inline mapping excluded), ``mapping`` per
+        mapped batch of keyframes (triangulation and bundle adjustment) and ``bundle_adjustment`` per
+        solve (in the worker process when mapping is asynchronous, the hand-over included)."""
+        with self._lock:
+            vo = self._vo
+            if vo is None:
+                return {"tracking": [], "mapping": [], "bundle_adjustment": []}
+            return {"tracking": list(vo.milliseconds), "mapping": list(vo.mapping.milliseconds),
+                    "bundle_adjustment": list(vo.mapping.solve_milliseconds)}
+
+    def wait_for_mapping(self, timeout: float | None = None) -> bool:
+        """Block until local mapping has taken every submitted keyframe; False on timeout."""
+        vo = self._vo
+        return True if vo is None else vo.mapping.wait(timeout)
+
     def add_arm_pose(self, stamp_ns: int, T_base_cam: np.ndarray) -> None:
         """The camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied).
 

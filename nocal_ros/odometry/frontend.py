@@ -22,6 +22,9 @@ import numpy as np
 #: Lucas-Kanade window and pyramid levels (each level halves the image).
 WINDOW = (15, 15)
 PYRAMID_LEVELS = 3
+#: Lucas-Kanade's iterations per pyramid level at most, and its step size (px) that ends them: OpenCV's defaults.
+LK_ITERATIONS = 30
+LK_EPSILON = 0.01
 #: A track whose backward track does not return within this many (work) pixels is a mismatch.
 FORWARD_BACKWARD_PX = 0.5
 
@@ -42,7 +45,8 @@ def detect_corners(gray: np.ndarray, max_corners: int, mask: np.ndarray | None =
 
 
 def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
-                  guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  guess: np.ndarray | None = None, window: int = WINDOW[0],
+                  iterations: int = LK_ITERATIONS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Track ``corners`` ``(N, 2)`` of image ``i`` into image ``j`` (pyramidal Lucas-Kanade, forward and back).
 
     ``guess`` ``(N, 2)``: where each corner is expected in ``j`` (a motion prediction), else its position in ``i``.
@@ -57,10 +61,13 @@ def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
     if guess is not None:
         tracked = np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_i, gray_j, points, tracked, winSize=WINDOW,
-                                                  maxLevel=PYRAMID_LEVELS, flags=flags)
-    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_j, gray_i, tracked, points.copy(), winSize=WINDOW,
-                                                    maxLevel=PYRAMID_LEVELS, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    size = (int(window), int(window))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(iterations), LK_EPSILON)
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_i, gray_j, points, tracked, winSize=size,
+                                                  maxLevel=PYRAMID_LEVELS, criteria=criteria, flags=flags)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_j, gray_i, tracked, points.copy(), winSize=size,
+                                                    maxLevel=PYRAMID_LEVELS, criteria=criteria,
+                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     height, width = gray_j.shape[:2]
     moved = tracked.reshape(-1, 2)
     inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= width - 1) & (moved[:, 1] <= height - 1)
@@ -82,6 +89,8 @@ class TrackerSettings:
     max_tracks: int = 300
     grid: tuple[int, int] = (8, 6)
     work_width: int = 640
+    window: int = WINDOW[0]
+    lk_iterations: int = LK_ITERATIONS
 
 
 @dataclass
@@ -115,6 +124,13 @@ class FeatureTracker:
 
     def __len__(self) -> int:
         return len(self._ids)
+
+    @property
+    def ids(self) -> np.ndarray:
+        """The ids of the live tracks (a read-only view)."""
+        view = self._ids.view()
+        view.flags.writeable = False
+        return view
 
     def _work_gray(self, image: np.ndarray) -> np.ndarray:
         gray = gray_image(image)
@@ -152,10 +168,11 @@ class FeatureTracker:
         guess = None
         if predicted:
             guess = self._points.astype(np.float64).copy()
-            for row, track_id in enumerate(self._ids.tolist()):
-                if track_id in predicted:
-                    guess[row] = self.to_work(predicted[track_id])
-        _, moved, kept = track_corners(previous, gray, self._points, guess)
+            rows = [row for row, track_id in enumerate(self._ids.tolist()) if track_id in predicted]
+            if rows:
+                guess[rows] = self.to_work(np.array([predicted[int(self._ids[row])] for row in rows]))
+        _, moved, kept = track_corners(previous, gray, self._points, guess, self.settings.window,
+                                       self.settings.lk_iterations)
         self._ids = self._ids[kept]
         self._points = moved.astype(np.float32)
         return self.current()

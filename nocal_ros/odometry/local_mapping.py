@@ -94,6 +94,9 @@ class LocalMapping:
         if self._thread is None:
             self._thread = threading.Thread(target=self._work, name="nocal_local_mapping", daemon=True)
             self._thread.start()
+            # Start the solver process now: spawning it and importing GTSAM took seconds (measured up to
+            # 2 s under load), which would otherwise delay the first keyframe's bundle adjustment.
+            self._solver_pool().submit(_import_solver)
         self._idle.clear()
         self._queue.put((local_map, keyframe))
 
@@ -142,14 +145,17 @@ class LocalMapping:
         if self.synchronous:
             solution = bundle_adjust(problem)
         else:
-            if self._solver is None:
-                import multiprocessing
-                from concurrent.futures import ProcessPoolExecutor
-
-                self._solver = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-            solution = self._solver.submit(bundle_adjust, problem).result()
+            solution = self._solver_pool().submit(bundle_adjust, problem).result()
         self.solve_milliseconds.append((time.perf_counter() - start) * 1e3)
         return solution
+
+    def _solver_pool(self) -> Any:
+        if self._solver is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._solver = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return self._solver
 
     # -- the work ----------------------------------------------------------------------------------
 
@@ -283,6 +289,10 @@ class LocalMapping:
                                window_information(solution.camera_covariance, self.camera.prior_information),
                                kept_share=(len(window) - 1) / len(window))
 
+
+
+def _import_solver() -> None:
+    import nocal_ros.odometry.bundle_adjustment  # noqa: F401 - loads GTSAM in the solver process
 
 
 def window_information(covariance: np.ndarray, prior_information: np.ndarray | None) -> np.ndarray:

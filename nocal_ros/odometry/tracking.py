@@ -19,6 +19,7 @@ Poses here are in the current map's frame and unit; the map's frame is its first
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -119,6 +120,10 @@ class VisualOdometry:
         self._poses: deque[tuple[int, np.ndarray]] = deque(maxlen=3)  # (frame, T_map_cam) of the last frames
         self._last_keyframe_inliers = 0
         self._last: tuple[Keyframe, np.ndarray] | None = None  # previous frame: reference keyframe, T_kf_cam
+        #: Milliseconds per frame of tracking alone (frontend, PnP, keyframe decision): local mapping run
+        #: inline in synchronous mode is left out, so the figure is what a frame costs the tracking thread.
+        self.milliseconds: deque[float] = deque(maxlen=500)
+        self._mapping_inline_s = 0.0
 
     def reset(self) -> None:
         self.mapping.wait()
@@ -135,6 +140,19 @@ class VisualOdometry:
     # -- per frame ---------------------------------------------------------------------------------
 
     def process(self, frame: int, stamp_ns: int, image: np.ndarray) -> VOFrame:
+        start = time.perf_counter()
+        self._mapping_inline_s = 0.0
+        result = self._process(frame, stamp_ns, image)
+        self.milliseconds.append((time.perf_counter() - start - self._mapping_inline_s) * 1e3)
+        return result
+
+    def _submit(self, local_map: LocalMap, keyframe: Keyframe) -> None:
+        start = time.perf_counter()
+        self.mapping.submit(local_map, keyframe)
+        if self.mapping.synchronous:
+            self._mapping_inline_s += time.perf_counter() - start
+
+    def _process(self, frame: int, stamp_ns: int, image: np.ndarray) -> VOFrame:
         settings = self.settings
         guess = self._predicted_pose(frame)
         predicted = self._predicted_pixels(guess) if guess is not None else None
@@ -233,7 +251,7 @@ class VisualOdometry:
         self._poses.append((frame, keyframe.T_w_c.copy()))
         self._last_keyframe_inliers = int(result.inliers.sum())
         self._last = (keyframe, np.eye(4))
-        self.mapping.submit(local_map, keyframe)
+        self._submit(local_map, keyframe)
         return VOFrame("ok", T_map_cam=keyframe.T_w_c.copy(), covariance=None, map_id=self.map_id,
                        reference_frame=reference_frame, new_map=True, keyframe=True, tracks=len(tracked.ids),
                        inliers=int(result.inliers.sum()))
@@ -267,7 +285,7 @@ class VisualOdometry:
             new_keyframe = self.map.add_keyframe(frame, stamp_ns, T, current.ids, current.pixels)
             self._last = (new_keyframe, np.eye(4))  # before mapping moves it
             self._last_keyframe_inliers = inliers
-            self.mapping.submit(self.map, new_keyframe)
+            self._submit(self.map, new_keyframe)
         else:
             with self.map.lock:
                 reference = self.map.keyframes[-1]
@@ -313,17 +331,19 @@ class VisualOdometry:
         return T1 @ step
 
     def _predicted_pixels(self, T_w_c: np.ndarray) -> dict[int, np.ndarray] | None:
+        """Where the landmarks of the live tracks project at pose ``T_w_c`` (the map's other landmarks are not tracked)."""
         if self.map is None:
             return None
         with self.map.lock:
-            if not self.map.landmarks:
+            landmarks = self.map.landmarks
+            ids = [i for i in self.tracker.ids.tolist() if i in landmarks]
+            if not ids:
                 return None
-            ids = np.fromiter(self.map.landmarks.keys(), dtype=np.int64)
-            points = np.array(list(self.map.landmarks.values()))
+            points = np.array([landmarks[i] for i in ids])
         points_c = (points - T_w_c[:3, 3]) @ T_w_c[:3, :3]
         pixels = self.camera.calibration.project(points_c)
         ok = np.isfinite(pixels).all(1)
-        return dict(zip(ids[ok].tolist(), pixels[ok]))
+        return dict(zip(np.asarray(ids)[ok].tolist(), pixels[ok]))
 
 
 def _lookup(tracked: TrackedFrame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
