@@ -330,6 +330,12 @@ def format_report(report: dict[str, Any]) -> str:
         ]
         if "fit_residual_px" in c:
             lines.append(f"  {c.get('distortion_model', 'parametric')} fit residual {c['fit_residual_px']:.3f} px RMS")
+    history = report.get("calibration_history")
+    if history:
+        # The start, the end and a few keyframes between: how the online camera converged.
+        picks = sorted({round(i) for i in np.linspace(0, len(history) - 1, min(len(history), 6))})
+        lines.append("  focal error over the replay: " + ", ".join(
+            f"frame {history[i]['frame']} {history[i]['focal_error_percent']:.2f} %" for i in picks))
     rows = [(key, label) for key, label in (("rpe", "RPE"), ("ape_se3", "APE SE(3)"), ("ape_sim3", "APE Sim(3)")) if report.get(key)]
     if rows:
         lines.append("odometry                        mean        std       rmse        max    count")
@@ -373,9 +379,11 @@ def plot_trajectory(
     estimate: np.ndarray,
     truth: np.ndarray,
     title: str = "",
+    calibration_history: list[dict[str, Any]] | None = None,
 ) -> Path:
     """PNG: top view of the estimate (after Sim(3) alignment) and the truth; position error after that
-    alignment and the per-pair RPE over time.
+    alignment and the per-pair RPE over time; with ``calibration_history`` (rows with ``stamp_ns``,
+    ``focal_error_percent`` and ``dr``), a third panel with the online camera's errors over time.
 
     The top view shows the plane of the truth's two largest position extents (world frames differ in
     which axis is up). Uses matplotlib's Agg backend: no display needed.
@@ -408,7 +416,9 @@ def plot_trajectory(
 
     extent = truth[:, :3, 3].max(0) - truth[:, :3, 3].min(0)
     a, b = sorted(np.argsort(extent)[-2:])
-    figure, (top, error_axis) = plt.subplots(1, 2, figsize=(11, 4.5))
+    panels = 3 if calibration_history and stamps_ns is not None else 2
+    figure, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4.5))
+    top, error_axis = axes[0], axes[1]
     top.plot(truth[:, a, 3], truth[:, b, 3], "k-", label="truth")
     top.plot(aligned[:, a], aligned[:, b], "r-", label=estimate_label)
     top.plot(truth[0, a, 3], truth[0, b, 3], "ko")
@@ -427,6 +437,18 @@ def plot_trajectory(
     rotation_axis.plot(time[1:], rpe["rotation_deg_per_pair"], "g-", alpha=0.6)
     rotation_axis.set_ylabel("RPE rotation per pair (deg)", color="g")
     error_axis.set_title("error over time")
+    if panels == 3:
+        camera_axis = axes[2]
+        camera_time = (np.array([row["stamp_ns"] for row in calibration_history], dtype=np.int64) - stamps[0]) * 1e-9
+        camera_axis.step(camera_time, [row["focal_error_percent"] for row in calibration_history], "m-", where="post",
+                         label="focal error")
+        camera_axis.set_yscale("log")
+        camera_axis.set_xlabel(time_label)
+        camera_axis.set_ylabel("focal error (%)", color="m")
+        dr_axis = camera_axis.twinx()
+        dr_axis.step(camera_time, [row["dr"] for row in calibration_history], "y-", where="post")
+        dr_axis.set_ylabel("mean radial shift dr", color="y")
+        camera_axis.set_title("online calibration")
     if title:
         figure.suptitle(title)
     figure.tight_layout()

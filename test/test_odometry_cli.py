@@ -237,6 +237,11 @@ def test_demo_renders_an_unseen_camera_and_reports_errors(tmp_path, capsys):
     assert "RPE" in printed and "reporting no motion at all" in printed and str(out / "result") in printed
     report = json.loads((out / "result" / "report.json").read_text())
     assert report["evaluated_poses"] == 5 and report["calibration"]["fx_true"] == pytest.approx(0.83 * 64)
+    # The online camera's story: the start camera first (the model's, f = width here), then each keyframe's.
+    history = report["calibration_history"]
+    assert history[0]["frame"] == 0 and history[0]["state"] == "prior" and history[0]["fx"] == pytest.approx(64)
+    assert history[0]["focal_error_percent"] > 15  # f = width against the demo camera's 0.83 width
+    assert "online calibration (true fx 53.1" in printed and "start camera -> end of replay" in printed
     assert main(arguments) == 0  # a second run replaces the demo's own directory
 
     foreign = tmp_path / "mine"

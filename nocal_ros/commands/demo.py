@@ -87,9 +87,30 @@ def run(args: argparse.Namespace) -> int:
     print(f"running odometry with {estimator.model_id}...")
     replay = replay_bag(bag, out / "result", estimator, progress=not args.no_progress)
     print(replay.summary())
+    print(_calibration_over_the_replay(replay.report, camera))
     print(_standing_still(replay, sequence))
     print(f"demo finished in {time.perf_counter() - start:.0f} s; input bag: {bag}; outputs: {out / 'result'}")
     return 0
+
+
+def _calibration_over_the_replay(report: dict | None, truth) -> str:
+    """The online camera from the start camera to the end of the replay, against the demo camera's truth."""
+    history = (report or {}).get("calibration_history") or []
+    final = (report or {}).get("calibration")
+    if not history or not final:
+        return "no calibration history (the odometry published no camera)"
+    lines = [f"online calibration (true fx {truth.fx:.1f}, fy {truth.fy:.1f} px):",
+             "   frame    time     fx (px)   fy (px)   focal error       dr   state"]
+    start_ns = history[0]["stamp_ns"]
+    picks = sorted({round(i) for i in np.linspace(0, len(history) - 1, min(len(history), 8))})
+    for i in picks:
+        row = history[i]
+        lines.append(f"  {row['frame']:>6} {(row['stamp_ns'] - start_ns) * 1e-9:>6.1f} s {row['fx']:>10.1f} {row['fy']:>9.1f} "
+                     f"{row['focal_error_percent']:>11.2f} % {row['dr']:>8.4f}   {row['state']}")
+    first = history[0]
+    lines.append(f"  start camera -> end of replay: focal error {first['focal_error_percent']:.2f} % -> "
+                 f"{final['focal_error_percent']:.2f} %, dr {first['dr']:.4f} -> {final['dr']:.4f}")
+    return "\n".join(lines)
 
 
 def _standing_still(replay, sequence) -> str:

@@ -340,6 +340,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     poses_cam: list[np.ndarray] = []
     tracking: list[str] = []
     scale_sources: list[str] = []
+    camera_history: list[dict[str, Any]] = []  # the online camera after the first frame and at each keyframe
     frames_in = 0
     start, start_cpu = time.perf_counter(), time.process_time()
     with BagWriter(stage["odometry"], storage=storage) as writer:
@@ -360,6 +361,11 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
             writer.write_camera_info("/camera_info", stamp_ns, camera_frame, calibration)
             if result is None:
                 continue
+            if not camera_history or result.keyframe:
+                camera_history.append({"frame": frames_in - 1, "stamp_ns": int(stamp_ns), "fx": float(calibration.fx),
+                                       "fy": float(calibration.fy), "cx": float(calibration.cx),
+                                       "cy": float(calibration.cy), "D": [float(d) for d in calibration.D],
+                                       "state": estimator.calibration_status()["state"]})
             child = base_frame or camera_frame
             writer.write_odometry(
                 "/odom", stamp_ns, odom_frame, child, result.T_odom_base, result.twist,
@@ -394,6 +400,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
         extras={"poses": len(all_stamps), "time_segments": len(segments),
                 "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
                 "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
+                "camera_history": camera_history,
                 "calibration_status": estimator.calibration_status()},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
@@ -487,11 +494,31 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report["arm_poses"] = int(replay.extras.get("arm_poses", 0))
     if replay.extras.get("calibration_status"):
         report["calibration_status"] = replay.extras["calibration_status"]
+    history = replay.extras.get("camera_history") or []
+    if history and truth.calibration is not None and calibration is not None:
+        report["calibration_history"] = _camera_history_errors(history, calibration, truth.calibration)
     if truth.calibration is not None and calibration is not None:
         report["calibration"] = evaluation.calibration_errors(calibration, truth.calibration)
         report["calibration"]["fit_residual_px"] = float(replay.calibration_residual_px or 0.0)
         report["calibration"]["distortion_model"] = calibration.distortion_model
     return report
+
+
+def _camera_history_errors(history: list[dict[str, Any]], like: Any, truth: Any) -> list[dict[str, Any]]:
+    """The online camera's focal error (%) and ``dr`` at each recorded frame (the first is the start camera)."""
+    from nocal_ros import evaluation
+    from nocal_ros.lens import CameraCalibration
+
+    rows = []
+    for entry in history:
+        K = np.array([[entry["fx"], 0.0, entry["cx"]], [0.0, entry["fy"], entry["cy"]], [0.0, 0.0, 1.0]])
+        camera = CameraCalibration(like.width, like.height, K, np.asarray(entry["D"]), like.distortion_model,
+                                   like.camera_name)
+        errors = evaluation.calibration_errors(camera, truth)
+        rows.append({"frame": entry["frame"], "stamp_ns": entry["stamp_ns"], "state": entry["state"],
+                     "fx": entry["fx"], "fy": entry["fy"],
+                     "focal_error_percent": float(errors["focal_error_percent"]), "dr": float(errors["dr"])})
+    return rows
 
 
 def _tracked_rpe(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
@@ -521,4 +548,5 @@ def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
     from nocal_ros import evaluation
 
     stamps, estimate, T_gt = _matched(replay, truth)
-    evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}")
+    evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}",
+                               calibration_history=(replay.report or {}).get("calibration_history"))
