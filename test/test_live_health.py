@@ -102,3 +102,13 @@ def test_hand_eye_must_be_a_rigid_transform():
                          (np.diag([-1.0, 1.0, 1.0, 1.0]).ravel(), "not a rigid")):
         with pytest.raises(ConfigError, match=problem):
             hand_eye_matrix(bad)
+
+
+def test_vo_timings_become_median_and_max_milliseconds_and_zero_before_any():
+    from nocal_ros.live.health import vo_timing_values
+
+    values = vo_timing_values({"tracking": [3.0, 1.0, 2.0, 10.0], "mapping": [], "bundle_adjustment": [40.0]})
+    assert values["tracking_ms_median"] == 2.5 and values["tracking_ms_max"] == 10.0
+    assert values["mapping_ms_median"] == 0.0 and values["mapping_ms_max"] == 0.0
+    assert values["bundle_adjustment_ms_median"] == 40.0
+    assert vo_timing_values({})["tracking_ms_median"] == 0.0

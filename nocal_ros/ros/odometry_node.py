@@ -68,7 +68,7 @@ from nocal_ros.errors import ConfigError, NocalError
 from nocal_ros.geometry import InvalidTransformError
 from nocal_ros.live.arm_poses import PendingStamps, hand_eye_matrix
 from nocal_ros.live.calibration_url import check_camera_name, load_calibration, save_calibration
-from nocal_ros.live.health import OdometryHealth
+from nocal_ros.live.health import OdometryHealth, vo_timing_values
 from nocal_ros.odometry import FrameMailbox, OdometryEstimator
 from nocal_ros.ros.conversions import (
     camera_info_message,
@@ -411,6 +411,7 @@ class OdometryNode(Node):
             "frames_rejected": self._rejected,
             **{f"estimator_{k}": v for k, v in vars(self.estimator.counters).items()},
             **{f"calibration_{k}": ("" if v is None else v) for k, v in calibration.items()},
+            **vo_timing_values(self.estimator.timings()),
             "calibration_file": str(self.calibration_path),
             "camera_info_failures": self._camera_info_failures,
             "arm_pose_source": self.arm_pose_source,
