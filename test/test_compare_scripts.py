@@ -105,6 +105,10 @@ def test_table_rows_and_the_no_motion_row_from_the_ground_truth(tmp_path, capsys
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 5 and lines[2].startswith("| mine | 10.00 % |") and lines[3].startswith("| nocal odometry (two-view) |")
     assert f"{report['rpe']['translation_m']['rmse']:.4f} / {report['rpe']['rotation_deg']['rmse']:.3f}" in lines[2]
+    # A keyframe VO report is labelled as one, with where its scale came from.
+    vo = {**report, "method": "vo", "scale_source": {"none": 2, "arm": 10}}
+    assert table.default_label(vo) == "nocal odometry (keyframe VO, arm-pose scale)"
+    assert table.default_label({**vo, "scale_source": {"pose_head": 12}}) == "nocal odometry (keyframe VO)"
     # No motion: the RPE is the true step itself; the APE the positions' RMS distance from their centroid.
     steps = np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)
     positions = truth[:, :3, 3]

@@ -29,6 +29,10 @@ HEADER = ("| method | focal err | dr | RPE per pair m / deg | APE Sim(3) m | tim
 def default_label(report: dict) -> str:
     if report.get("method") == "colmap":
         return report.get("model", "COLMAP")
+    if report.get("method") == "vo":
+        scale = report.get("scale_source", {})
+        return "nocal odometry (keyframe VO" + (", arm-pose scale)" if scale.get("arm") else ")")
+    # reports from before the keyframe VO (no "method" key) and --method pose_head
     events = report.get("events", {})
     path = "two-view" if events.get("two_view_pairs", 0) > 0 else "pose head alone"
     return f"nocal odometry ({path})"
