@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 import yaml
 
 from nocal_ros.errors import ConfigError
@@ -38,7 +38,13 @@ _UNDISTORT_MAX_ITERATIONS = 60
 
 
 def _xp(array: Any):
-    return torch if isinstance(array, torch.Tensor) else np
+    """The array module of ``array``: numpy, or torch for a tensor.
+
+    torch is never imported here: a tensor means it is loaded already, and numpy-only users (the
+    bundle adjustment's worker process) then start without it.
+    """
+    torch = sys.modules.get("torch")
+    return torch if torch is not None and isinstance(array, torch.Tensor) else np
 
 
 def normalise_coefficients(coefficients: Any, model: str) -> np.ndarray:
@@ -162,20 +168,20 @@ def _newton_undistort(target, D, model: str):
 def _undistort_polynomial(xy_d, D, model: str):
     """Exact inverse of the polynomial models; NaN where it fails or lands past a fold."""
     xp = _xp(xy_d)
-    if xp is torch:
+    if xp is not np:
         # Solve in float64 numpy, then one Newton step in torch: at the solution that step is the
         # identity in value but carries the implicit-function gradient w.r.t. points and coefficients.
         flat = xy_d.detach().reshape(-1, 2).cpu().double().numpy()
         solved = _newton_undistort(flat, D.detach().cpu().double().numpy(), model)
-        x0 = torch.from_numpy(solved).to(xy_d).reshape(xy_d.shape)
+        x0 = xp.from_numpy(solved).to(xy_d).reshape(xy_d.shape)
         j00, j01, j10, j11 = _distortion_jacobian(x0[..., 0], x0[..., 1], D, model)
         r = distort_normalised(x0, D, model) - xy_d
         det = j00 * j11 - j01 * j10
-        step = torch.stack((j11 * r[..., 0] - j01 * r[..., 1], -j10 * r[..., 0] + j00 * r[..., 1]), -1) / det[..., None]
+        step = xp.stack((j11 * r[..., 0] - j01 * r[..., 1], -j10 * r[..., 0] + j00 * r[..., 1]), -1) / det[..., None]
         x = x0 - step
-        ok = torch.from_numpy(np.isfinite(_check_undistorted(solved, flat, D.detach().cpu().double().numpy(), model)[:, 0]))
+        ok = xp.from_numpy(np.isfinite(_check_undistorted(solved, flat, D.detach().cpu().double().numpy(), model)[:, 0]))
         ok = ok.to(xy_d.device).reshape(xy_d.shape[:-1])
-        return torch.where(ok[..., None], x, torch.full_like(x, float("nan")))
+        return xp.where(ok[..., None], x, xp.full_like(x, float("nan")))
     shape = xy_d.shape
     flat = np.asarray(xy_d, dtype=np.float64).reshape(-1, 2)
     return _check_undistorted(_newton_undistort(flat, D, model), flat, D, model).reshape(shape)
@@ -406,7 +412,7 @@ class CameraCalibration:
         Accepts numpy (float64) or torch (differentiable) input.
         """
         xp = _xp(points_cam)
-        D = self.D if xp is np else torch.as_tensor(self.D, dtype=points_cam.dtype, device=points_cam.device)
+        D = self.D if xp is np else xp.as_tensor(self.D, dtype=points_cam.dtype, device=points_cam.device)
         X, Y, Z = points_cam[..., 0], points_cam[..., 1], points_cam[..., 2]
         if self.distortion_model == "equidistant":
             # atan2 of the off-axis distance keeps points beyond 90 degrees on the right side.
@@ -428,13 +434,13 @@ class CameraCalibration:
         NaN where no ray maps to the pixel (outside the valid range of a strong distortion).
         """
         xp = _xp(pixels)
-        D = self.D if xp is np else torch.as_tensor(self.D, dtype=pixels.dtype, device=pixels.device)
+        D = self.D if xp is np else xp.as_tensor(self.D, dtype=pixels.dtype, device=pixels.device)
         return undistort_rays(self.distorted_normalised(pixels), D, self.distortion_model)
 
     def undistorted_normalised(self, pixels):
         """Undistorted normalised coordinates ``(N, 2)`` (``x/z``, ``y/z``) of pixels ``(N, 2)``."""
         xp = _xp(pixels)
-        D = self.D if xp is np else torch.as_tensor(self.D, dtype=pixels.dtype, device=pixels.device)
+        D = self.D if xp is np else xp.as_tensor(self.D, dtype=pixels.dtype, device=pixels.device)
         return undistort_normalised(self.distorted_normalised(pixels), D, self.distortion_model)
 
     def pixel_rays(self, width: int | None = None, height: int | None = None, supersample: int = 1) -> np.ndarray:

@@ -17,32 +17,33 @@ The odometry node, ``nocal odometry`` and ``nocal demo`` all feed frames to
 * ``mailbox.py``: handing frames from a ROS executor to the worker thread.
 """
 
-from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
-from nocal_ros.odometry.estimator import (
-    FrameError,
-    FrameSizeError,
-    OdometryCounters,
-    OdometryEstimator,
-    OdometryResult,
-    fit_calibration,
-)
-from nocal_ros.odometry.mailbox import FrameMailbox
-from nocal_ros.odometry.pose_head import DEFAULT_MAX_GAP, DEFAULT_POSE_ERROR_STD, PoseModel, PoseRunner, resolve_device
+from __future__ import annotations
 
-__all__ = [
-    "DEFAULT_MAX_GAP",
-    "DEFAULT_POSE_ERROR_STD",
-    "FrameError",
-    "FrameMailbox",
-    "FrameSizeError",
-    "OdometryCounters",
-    "OdometryEstimator",
-    "OdometryResult",
-    "PoseModel",
-    "PoseRunner",
-    "UNKNOWN_VARIANCE",
-    "adjoint",
-    "fit_calibration",
-    "propagate_covariance",
-    "resolve_device",
-]
+import importlib
+from typing import Any
+
+# Names are loaded on first use (PEP 562): the bundle adjustment's worker process imports
+# ``nocal_ros.odometry.bundle_adjustment`` alone, and importing the estimator here would load torch
+# there too (1.8 s of the first keyframe's solve, measured).
+_EXPORTS = {
+    "UNKNOWN_VARIANCE": "covariance", "adjoint": "covariance", "propagate_covariance": "covariance",
+    "FrameError": "estimator", "FrameSizeError": "estimator", "OdometryCounters": "estimator",
+    "OdometryEstimator": "estimator", "OdometryResult": "estimator", "fit_calibration": "estimator",
+    "FrameMailbox": "mailbox",
+    "DEFAULT_MAX_GAP": "pose_head", "DEFAULT_POSE_ERROR_STD": "pose_head", "PoseModel": "pose_head",
+    "PoseRunner": "pose_head", "resolve_device": "pose_head",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + __all__)

@@ -104,6 +104,9 @@ PERIOD_HISTORY = 32
 LOST_STD = {"translation_m": 1.0, "rotation_rad": 0.5}
 #: Published poses kept per frame, for anchoring a new map at its first keyframe.
 POSE_HISTORY = 256
+#: The most recent keyframes with arm poses that the scale is fitted to: a monocular map's scale drifts
+#: (and moves while the online camera converges), so the newest part of the map is the one to match.
+ARM_FIT_KEYFRAMES = 10
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
 ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
@@ -703,7 +706,7 @@ class OdometryEstimator:
         with self._vo.map.lock:
             keyframes = [(kf.stamp_ns, kf.T_w_c[:3, 3].copy()) for kf in self._vo.map.keyframes]
         pairs = [(p, self._arm_position(stamp)) for stamp, p in keyframes]
-        pairs = [(p, a) for p, a in pairs if a is not None]
+        pairs = [(p, a) for p, a in pairs if a is not None][-ARM_FIT_KEYFRAMES:]
         if pairs:
             estimate = fit_arm_scale(np.array([p for p, _ in pairs]), np.array([a for _, a in pairs]))
             if estimate is not None:

@@ -56,6 +56,8 @@ class MappingSettings:
     """
 
     window: int = 10
+    fixed_keyframes: int = 0
+    scale_baseline: int = 1
     pixel_threshold: float = 1.5
     camera_stages: tuple[int, int, int] = (4, 6, 8)
     bundle_adjustment: bool = True
@@ -84,6 +86,10 @@ class LocalMapping:
         self._idle.set()
         self._thread: threading.Thread | None = None
         self._solver: Any = None
+        if not synchronous:
+            # Start the solver process now, before the first keyframe: spawning it and importing GTSAM
+            # would otherwise delay the first bundle adjustment (seconds under load, measured).
+            self._solver_pool().submit(_import_solver)
 
     # -- thread handling ---------------------------------------------------------------------------
 
@@ -94,9 +100,6 @@ class LocalMapping:
         if self._thread is None:
             self._thread = threading.Thread(target=self._work, name="nocal_local_mapping", daemon=True)
             self._thread.start()
-            # Start the solver process now: spawning it and importing GTSAM took seconds (measured up to
-            # 2 s under load), which would otherwise delay the first keyframe's bundle adjustment.
-            self._solver_pool().submit(_import_solver)
         self._idle.clear()
         self._queue.put((local_map, keyframe))
 
@@ -222,7 +225,8 @@ class LocalMapping:
         """Windowed bundle adjustment over keyframes, landmarks and the camera (see the module notes)."""
         from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem
 
-        window = local_map.window(self.settings.window)
+        window = local_map.window(self.settings.window + self.settings.fixed_keyframes)
+        held = max(0, len(window) - self.settings.window)  # older keyframes that only anchor the landmarks
         with local_map.lock:
             observations = []  # (keyframe row, landmark id, pixel)
             for row, keyframe in enumerate(window):
@@ -251,7 +255,7 @@ class LocalMapping:
         # held (the scale). The rest, the relative rotation of those two included, is free: their
         # poses were estimated through an older, worse camera, and fixing both would hold that error.
         fixed = np.zeros(len(window), dtype=bool)
-        fixed[0] = True
+        fixed[: max(1, held)] = True
         # A keyframe none of whose observations made it into the window's landmarks cannot be moved.
         fixed |= np.bincount(rows, minlength=len(window)) == 0
         calibration = self.camera.calibration
@@ -259,10 +263,13 @@ class LocalMapping:
         if self.camera.prior_information is not None:
             prior = CameraPrior(calibration, self.camera.prior_information)
         freedom = self.camera_freedom()
+        # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
+        # oldest keyframe to a later one is held at its value from the previous windows.
+        scale_pair = None if held >= 2 else (0, min(held + self.settings.scale_baseline, len(window) - 1))
         problem = WindowProblem(
             calibration=calibration, poses=poses, fixed=fixed, points=points, keyframe_index=rows,
             point_index=point_index, pixels=pixels, camera=freedom, camera_prior=prior,
-            robust_threshold_px=self.settings.pixel_threshold, scale_pair=(0, 1),
+            robust_threshold_px=self.settings.pixel_threshold, scale_pair=scale_pair,
         )
         solution = self._solve(problem)
         if not solution.success:
@@ -287,7 +294,7 @@ class LocalMapping:
         if freedom != "fixed" and solution.camera_covariance is not None:
             self.camera.update(solution.calibration, solution.camera_covariance,
                                window_information(solution.camera_covariance, self.camera.prior_information),
-                               kept_share=(len(window) - 1) / len(window))
+                               kept_share=(len(window) - held - 1) / (len(window) - held))
 
 
 
