@@ -48,6 +48,13 @@ class MappingSettings:
 
     Attributes:
         window: keyframes in each bundle adjustment.
+        fixed_keyframes: older keyframes added to the window, held fixed, whose observations anchor
+            its landmarks (ORB-SLAM's fixed covisible keyframes). Off: on 10 dev bags 3 of them lowered
+            the aligned APE on 6 but raised the focal error from 1.9 % to 12 % on average (they hold
+            poses made through an older camera).
+        scale_baseline: the window's scale is held by the distance from its oldest keyframe to this
+            many keyframes later. 1: a longer baseline (5) was better on 6 of 10 dev bags and worse
+            on 4 (measured; the VO's chaotic sensitivity to small changes left it undecided).
         pixel_threshold: inlier threshold in native pixels (triangulation checks and the robust loss).
         camera_stages: keyframe counts from which the camera's focal length, then its intrinsics, then
             its radial distortion are free in the bundle adjustment (a calibration curriculum: a window
