@@ -442,7 +442,7 @@ def plot_trajectory(
         camera_time = (np.array([row["stamp_ns"] for row in calibration_history], dtype=np.int64) - stamps[0]) * 1e-9
         camera_axis.step(camera_time, [row["focal_error_percent"] for row in calibration_history], "m-", where="post",
                          label="focal error")
-        camera_axis.set_yscale("log")
+        camera_axis.set_yscale("symlog", linthresh=0.1)  # zero error (a given camera) stays drawable
         camera_axis.set_xlabel(time_label)
         camera_axis.set_ylabel("focal error (%)", color="m")
         dr_axis = camera_axis.twinx()

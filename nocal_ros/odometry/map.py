@@ -54,6 +54,8 @@ class LocalMap:
     keyframes: list[Keyframe] = field(default_factory=list)
     landmarks: dict[int, np.ndarray] = field(default_factory=dict)
     lock: threading.RLock = field(default_factory=threading.RLock)
+    #: Counts the bundle adjustments applied: tracking re-poses its previous frame when it changed.
+    version: int = 0
 
     def landmark_positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(mask (N,), positions (M, 3))`` of the ids that have a landmark."""
