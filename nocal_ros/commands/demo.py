@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("nocal_demo"), help="output directory (default: ./nocal_demo)")
     parser.add_argument("--model", default="", help="checkpoint or model store (default: the shipped model)")
     parser.add_argument("--device", default="auto", type=arg.device_name, help="auto, cpu, cuda or cuda:N")
-    parser.add_argument("--frames", type=arg.positive_int, default=60, help="frames to render (10 per second)")
+    parser.add_argument("--frames", type=arg.positive_int, default=80, help="frames to render (10 per second)")
     parser.add_argument("--size", default=(640, 480), type=arg.image_size, help="demo camera resolution WxH")
     parser.add_argument("--method", default="vo", choices=("vo", "pose_head"), help="see nocal odometry --help")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
