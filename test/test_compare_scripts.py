@@ -115,3 +115,27 @@ def test_table_rows_and_the_no_motion_row_from_the_ground_truth(tmp_path, capsys
     spread = np.sqrt(np.mean(np.sum((positions - positions.mean(0)) ** 2, axis=1)))
     assert lines[4].startswith("| no motion") and f"| {np.sqrt(np.mean(steps**2)):.4f} / 2.000 | {spread:.4f} |" in lines[4]
     assert lines[4].endswith("| 12/12 |")
+
+
+def test_rpe_after_a_frame_reads_exact_stamps_and_scores_only_the_later_pairs(tmp_path, capsys):
+    from nocal_ros.commands.odometry import write_tum
+    from nocal_ros.geometry import so3_exp
+
+    sequence = moving_sequence()
+    bag = write_sequence(sequence, tmp_path / "bag")
+    truth = sequence.ground_truth
+    # The estimate: the truth at half the scale, with a 1 deg rotation error added to frame 3 only
+    # (it spoils pairs 2-3 and 3-4), so the pairs from frame 4 on have no rotation error.
+    estimate = truth.copy()
+    estimate[:, :3, 3] *= 0.5
+    estimate[3, :3, :3] = estimate[3, :3, :3] @ so3_exp(np.radians([1.0, 0.0, 0.0]))
+    write_tum(tmp_path / "trajectory.tum", sequence.stamps_ns, estimate)
+    rpe_after = load_script("rpe_after")
+    stamps, poses = rpe_after.read_tum(str(tmp_path / "trajectory.tum"))
+    assert stamps.tolist() == sequence.stamps_ns.tolist()  # nanoseconds exactly, not through a float
+    assert rpe_after.main([str(bag), str(tmp_path / "trajectory.tum"), "--from-frame", "4"]) == 0
+    printed = capsys.readouterr().out
+    assert "7 pairs from frame 4" in printed and "RPE rotation RMSE 0.000 deg" in printed and "scale 2.000" in printed
+    assert rpe_after.main([str(bag), str(tmp_path / "trajectory.tum"), "--from-frame", "3"]) == 0
+    # pair 3-4 alone is off by 1 deg: RMSE over 8 pairs 1 / sqrt(8)
+    assert "RPE rotation RMSE 0.354 deg" in capsys.readouterr().out
