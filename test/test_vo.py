@@ -75,6 +75,15 @@ def test_a_still_camera_reports_no_motion_and_a_black_one_is_not_tracked(sequenc
     # Each untracked frame adds the lost-frame variance: nobody may trust these poses.
     assert results[-1].pose_covariance[0, 0] >= 18 * LOST_STD["translation_m"] ** 2
 
+    # Independent noise in every frame: corners everywhere, none of them survives into the next
+    # frame, so there is nothing to measure and no pose head guess is taken (it moved 0.15 m before).
+    estimator = OdometryEstimator(calibration=CAMERA, synchronous_mapping=True)
+    noise = list(np.random.default_rng(0).integers(0, 256, (20, HEIGHT, WIDTH, 3), dtype=np.uint8))
+    results = run(estimator, noise, sequence.stamps_ns[:20])
+    assert not any(r.tracking == "ok" for r in results)
+    assert max(np.linalg.norm(r.T_odom_base[:3, 3]) for r in results) == 0.0
+    assert estimator.counters.pose_head_fallbacks == 0
+
 
 def test_lost_tracking_reinitialises_and_never_jumps_confidently(sequence, other_room):
     estimator = OdometryEstimator(calibration=CAMERA, synchronous_mapping=True)

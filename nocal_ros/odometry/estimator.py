@@ -630,7 +630,11 @@ class OdometryEstimator:
                 inference_ms += ms
             else:
                 T_new, source = T_prev, "none"
-                if vo_frame.textured and previous_key is not None and self._runner.holds(previous_key):
+                # The pose head bridges a frame that shows the previous frame's scene (some tracks
+                # survived into it) but not one after a cut or of noise: 40 frames of noise moved the
+                # camera 0.15 m on the pose head's guesses (measured), and nothing is there to measure.
+                continuous = vo_frame.tracks >= self.settings.min_tracks
+                if vo_frame.textured and continuous and previous_key is not None and self._runner.holds(previous_key):
                     start = time.perf_counter()
                     T_ci_cj = self._runner.run(previous_key, key)
                     inference_ms += (time.perf_counter() - start) * 1e3
