@@ -268,3 +268,35 @@ def test_a_camera_of_another_aspect_ratio_gets_a_camera_info_of_its_own_shape(tm
     assert (saved.width, saved.height) == (80, 40) and saved.fx == pytest.approx(80.0)
     infos = read_topics(tmp_path / "out" / "odometry")["/camera_info"]
     assert len(infos) == 3 and all((m.width, m.height) == (80, 40) for _, m in infos)
+
+@pytest.mark.parametrize(("size", "mono"), [((1241, 376), True), ((1280, 720), False)])
+def test_camera_info_of_a_kitti_and_a_16_9_camera_reprojects_like_their_learnt_camera(tmp_path, size, mono):
+    """Issue 13: a camera learnt at 1241x376 (mono8 frames) or 1280x720 publishes, from frames of that
+    shape, a CameraInfo of that shape whose K and D reproject its learnt rays within the fit residual."""
+    from nocal_ros.commands.odometry import replay_bag
+
+    width, height = size
+    f = 0.58 * width
+    truth = CameraCalibration(width, height, np.array([[f, 0, 0.51 * width], [0, 1.01 * f, 0.48 * height], [0, 0, 1]]),
+                              np.array([-0.18, 0.04, 0.0008, -0.0005, 0.0]))
+    camera = CameraModel.from_calibration(truth, iterations=40, samples=(24, 12))
+    T_w_c = random_trajectory(3)
+    bag = tmp_path / "in"
+    with BagWriter(bag) as writer:
+        for k in range(3):
+            image = np.full((height, width) if mono else (height, width, 3), k, np.uint8)  # the fake pose head reads k
+            writer.write_image("/camera/image_raw", START_NS + k * PERIOD_NS, "cam", image)
+    replay = replay_bag(bag, tmp_path / "out", make_estimator(T_w_c, camera), progress=False, gt_topic=None)
+    info = read_topics(tmp_path / "out" / "odometry")["/camera_info"][0][1]
+    assert (info.width, info.height) == size
+    K, D = np.asarray(info.k).reshape(3, 3), np.asarray(info.d)
+    u, v = np.meshgrid(np.linspace(0, width - 1, 31), np.linspace(0, height - 1, 17))
+    pixels = np.stack((u.ravel(), v.ravel()), -1)
+    with torch.no_grad():
+        xy = camera.undistorted_normalised(torch.from_numpy(pixels[:, 0]).float(), torch.from_numpy(pixels[:, 1]).float()).double().numpy()
+    rays = np.concatenate((xy, np.ones((len(xy), 1))), 1)
+    projected, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, D)
+    rms = np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - pixels) ** 2, -1)))
+    assert replay.calibration_residual_px is not None and rms <= 1.2 * replay.calibration_residual_px + 0.01
+    # The learnt camera itself, not the f = width prior: K is within a few percent of the true one.
+    assert K[0, 0] == pytest.approx(truth.fx, rel=0.05) and K[1, 1] == pytest.approx(truth.fy, rel=0.05)
