@@ -672,8 +672,8 @@ def fit_translation_scale(
     """Least-squares factor on the pose head's translation length over arm-posed pairs ``gap`` apart.
 
     ``factor = sum |t_pred| |t_arm| / sum |t_pred|^2`` minimises ``sum (factor |t_pred| - |t_arm|)^2``.
-    Lengths, not vectors: the odometry takes the direction of travel from two-view geometry and only
-    the length from the pose head. Returns ``{factor, pairs, rms_before_m, rms_after_m}``, or None when
+    Lengths, not vectors: the keyframe VO takes the motion from its map and only the scale from the
+    pose head's lengths. Returns ``{factor, pairs, rms_before_m, rms_after_m}``, or None when
     no such pairs exist (or the head predicts no translation at all).
     """
     from nocal_ros.data.pairs import PairDataset

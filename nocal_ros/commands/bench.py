@@ -137,7 +137,7 @@ def bench_pose_head(pose_model, iterations: int, warmup: int) -> dict[str, Any]:
 
 
 def _rendered_frames(native: tuple[int, int], count: int) -> list[np.ndarray]:
-    """A rendered camera motion (the demo's camera and room): two-view tracking needs real motion."""
+    """A rendered camera motion (the demo's camera and room): the VO needs real motion to track."""
     from nocal_ros.commands.demo import DEMO_SEED, demo_camera
     from nocal_ros.data.synthetic import render_sequence
 
