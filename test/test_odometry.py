@@ -434,3 +434,20 @@ def test_results_say_tracking_initialises_at_a_chain_start_and_the_scale_source(
     assert [r.tracking for r in results] == ["initialising", "ok", "ok"]
     assert {r.scale_source for r in results} == {"pose_head"}
     assert estimator.process(START_NS, frame(0)).tracking == "initialising"  # time went back: a new chain
+
+
+def test_replay_at_rate_hands_the_newest_item_to_a_busy_worker_and_counts_the_rest():
+    import time
+
+    from nocal_ros.odometry import replay_at_rate
+
+    seen: list[int] = []
+    quick = replay_at_rate(list(range(10)), 200.0, lambda index, item: seen.append(item))
+    assert (quick.handled, quick.dropped) == (10, 0) and seen == list(range(10))
+    assert len(quick.latencies_ms) == 10 and min(quick.latencies_ms) >= 0
+
+    seen.clear()
+    # A worker five times slower than the items arrive: it sees the first item, then only the newest.
+    slow = replay_at_rate(list(range(20)), 100.0, lambda index, item: (seen.append(item), time.sleep(0.05)))
+    assert slow.handled + slow.dropped == 20 and slow.dropped >= 10
+    assert seen[0] == 0 and seen == sorted(seen) and len(seen) == slow.handled

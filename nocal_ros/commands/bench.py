@@ -194,10 +194,8 @@ def _percentiles(values: list[float] | np.ndarray) -> dict[str, float] | None:
 def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) -> dict[str, Any]:
     """The keyframe VO's costs on ``frames`` (see the module notes); the first ``warmup`` frames'
     tracking times are left out (they hold the map's initialisation)."""
-    import threading
-
     from nocal_ros.data.bags import decode_image
-    from nocal_ros.odometry import FrameMailbox, OdometryEstimator
+    from nocal_ros.odometry import OdometryEstimator, replay_at_rate
 
     messages = [_image_message(frame, 0) for frame in frames]
     period_ns = int(round(1e9 / rate_hz))
@@ -228,39 +226,16 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) 
 
     # In real time, mapping in its worker: frames arrive every 1/rate s; the worker takes the newest.
     estimator = OdometryEstimator(pose_model, method="vo")
-    mailbox = FrameMailbox(latest_only=True)
-    latencies: list[float] = []
-    processed = [0]
-
-    def work() -> None:
-        while True:
-            item = mailbox.get(timeout=0.5)
-            if item is None:
-                return
-            arrived, stamp_ns, message = item
-            estimator.process(stamp_ns, decode_image(message), encoding="rgb8")
-            latencies.append((time.perf_counter() - arrived) * 1e3)
-            processed[0] += 1
-
-    worker = threading.Thread(target=work, name="bench_vo_worker", daemon=True)
-    worker.start()
-    start = time.perf_counter()
-    for k, message in enumerate(messages):
-        due = start + k / rate_hz
-        pause = due - time.perf_counter()
-        if pause > 0:
-            time.sleep(pause)
-        mailbox.put((time.perf_counter(), k * period_ns, message))
-    mailbox.close()
-    worker.join()
+    replay = replay_at_rate(messages, rate_hz, lambda k, message: estimator.process(
+        k * period_ns, decode_image(message), encoding="rgb8"))
     estimator.wait_for_mapping(timeout=60.0)
     timings = estimator.timings()
     result["realtime"] = {
-        "rate_hz": float(rate_hz), "frames_sent": len(messages), "frames_processed": processed[0],
-        "frames_dropped": int(mailbox.dropped), "latency": _percentiles(latencies),
+        "rate_hz": float(rate_hz), "frames_sent": len(messages), "frames_processed": replay.handled,
+        "frames_dropped": int(replay.dropped), "latency": _percentiles(replay.latencies_ms),
         "bundle_adjustment": _percentiles(timings["bundle_adjustment"]),
         "keyframes": int(estimator.counters.keyframes),
-        "keyframes_merged": int(estimator._vo.mapping.merged) if estimator._vo is not None else 0,
+        "keyframes_merged": estimator.keyframes_merged,
         "tracking_states": dict(vars(estimator.counters)),
     }
     estimator.close()

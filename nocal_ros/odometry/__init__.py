@@ -29,7 +29,7 @@ _EXPORTS = {
     "UNKNOWN_VARIANCE": "covariance", "adjoint": "covariance", "propagate_covariance": "covariance",
     "FrameError": "estimator", "FrameSizeError": "estimator", "OdometryCounters": "estimator",
     "OdometryEstimator": "estimator", "OdometryResult": "estimator", "fit_calibration": "estimator",
-    "FrameMailbox": "mailbox",
+    "FrameMailbox": "mailbox", "RateReplay": "mailbox", "replay_at_rate": "mailbox",
     "DEFAULT_MAX_GAP": "pose_head", "DEFAULT_POSE_ERROR_STD": "pose_head", "PoseModel": "pose_head",
     "PoseRunner": "pose_head", "resolve_device": "pose_head",
 }

@@ -451,6 +451,12 @@ class OdometryEstimator:
             return {"tracking": list(vo.milliseconds), "mapping": list(vo.mapping.milliseconds),
                     "bundle_adjustment": list(vo.mapping.solve_milliseconds)}
 
+    @property
+    def keyframes_merged(self) -> int:
+        """Keyframes whose bundle adjustment local mapping folded into a later one (it fell behind)."""
+        vo = self._vo
+        return 0 if vo is None else int(vo.mapping.merged)
+
     def wait_for_mapping(self, timeout: float | None = None) -> bool:
         """Block until local mapping has taken every submitted keyframe; False on timeout."""
         vo = self._vo

@@ -1,9 +1,12 @@
-"""Handing frames from a ROS executor to the odometry's worker thread."""
+"""Handing frames from a ROS executor to the odometry's worker thread, and replaying frames that way."""
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 
@@ -40,3 +43,46 @@ class FrameMailbox:
         with self._condition:
             self._closed = True
             self._condition.notify_all()
+
+
+@dataclass
+class RateReplay:
+    """What :func:`replay_at_rate` saw: items handled and dropped, and each handled item's latency."""
+
+    handled: int
+    dropped: int
+    latencies_ms: list[float]
+
+
+def replay_at_rate(items: Sequence[Any], rate_hz: float, handle: Callable[[int, Any], None]) -> RateReplay:
+    """Offer ``items`` at ``rate_hz`` in real time to a worker thread the way the odometry node does.
+
+    A one-slot :class:`FrameMailbox`: an item that arrives while the worker is busy replaces the waiting
+    one and is counted as dropped. The worker calls ``handle(index, item)`` on the newest; the latency
+    is from the item's arrival to the end of its handling. Returns when every item is handled or dropped.
+    """
+    mailbox = FrameMailbox(latest_only=True)
+    latencies: list[float] = []
+    handled = [0]
+
+    def work() -> None:
+        while True:
+            entry = mailbox.get(timeout=0.5)
+            if entry is None:
+                return
+            arrived, index, item = entry
+            handle(index, item)
+            latencies.append((time.perf_counter() - arrived) * 1e3)
+            handled[0] += 1
+
+    worker = threading.Thread(target=work, name="replay_at_rate", daemon=True)
+    worker.start()
+    start = time.perf_counter()
+    for index, item in enumerate(items):
+        pause = start + index / rate_hz - time.perf_counter()
+        if pause > 0:
+            time.sleep(pause)
+        mailbox.put((time.perf_counter(), index, item))
+    mailbox.close()
+    worker.join()
+    return RateReplay(handled[0], mailbox.dropped, latencies)

@@ -13,8 +13,6 @@ from run to run: they depend on the machine's timing.
 from __future__ import annotations
 
 import argparse
-import threading
-import time
 
 import numpy as np
 
@@ -31,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     from nocal_ros import evaluation
     from nocal_ros.data.bags import read_pose_messages, read_sequence
     from nocal_ros.geometry import invert_transform
-    from nocal_ros.odometry import FrameMailbox, OdometryEstimator
+    from nocal_ros.odometry import OdometryEstimator, replay_at_rate
 
     torch.set_num_threads(1)
     sequence = read_sequence(args.bag, pose_source="none")
@@ -39,33 +37,19 @@ def main(argv: list[str] | None = None) -> int:
     rate = args.rate or 1e9 / float(np.median(np.diff(stamps)))
     arm_stamps, arm_poses = read_pose_messages(args.bag, args.arm_topic) if args.arm_topic else ([], [])
     estimator = OdometryEstimator()
-    mailbox = FrameMailbox(latest_only=True)
     poses: dict[int, np.ndarray] = {}
+    next_arm = 0
 
-    def work() -> None:
-        next_arm = 0
-        while True:
-            item = mailbox.get(timeout=0.5)
-            if item is None:
-                return
-            k, image = item
-            while next_arm < len(arm_stamps) and arm_stamps[next_arm] <= stamps[k]:
-                estimator.add_arm_pose(int(arm_stamps[next_arm]), arm_poses[next_arm])
-                next_arm += 1
-            result = estimator.process(int(stamps[k]), image)
-            if result is not None:
-                poses[k] = result.T_odom_cam
+    def handle(k: int, image: np.ndarray) -> None:
+        nonlocal next_arm
+        while next_arm < len(arm_stamps) and arm_stamps[next_arm] <= stamps[k]:
+            estimator.add_arm_pose(int(arm_stamps[next_arm]), arm_poses[next_arm])
+            next_arm += 1
+        result = estimator.process(int(stamps[k]), image)
+        if result is not None:
+            poses[k] = result.T_odom_cam
 
-    worker = threading.Thread(target=work, name="realtime_worker")
-    worker.start()
-    start = time.perf_counter()
-    for k, image in enumerate(sequence.images):
-        pause = start + k / rate - time.perf_counter()
-        if pause > 0:
-            time.sleep(pause)
-        mailbox.put((k, image))
-    mailbox.close()
-    worker.join()
+    replay = replay_at_rate(sequence.images, rate, handle)
     estimator.wait_for_mapping(timeout=60.0)
     frames = sorted(poses)
     truth = sequence.ground_truth[frames]
@@ -74,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     camera = evaluation.calibration_errors(estimator.camera_info()[0], sequence.calibration)
     rpe = evaluation.relative_pose_error(estimate, truth)
     ape = evaluation.absolute_pose_error(estimate, truth, correct_scale=True)
-    print(f"{args.bag} at {rate:g} Hz: {len(frames)} of {len(stamps)} frames processed, {mailbox.dropped} dropped; "
+    print(f"{args.bag} at {rate:g} Hz: {len(frames)} of {len(stamps)} frames processed, {replay.dropped} dropped; "
           f"focal {camera['focal_error_percent']:.2f} %, dr {camera['dr']:.4f}; RPE over processed pairs "
           f"{rpe['translation_m']['rmse']:.4f} m / {rpe['rotation_deg']['rmse']:.3f} deg; APE Sim(3) {ape['rmse']:.4f} m "
           f"(scale {ape['scale']:.3f}); {len(estimator.timings()['bundle_adjustment'])} bundle adjustments for "
