@@ -130,8 +130,10 @@ def test_rpe_after_a_frame_reads_exact_stamps_and_scores_only_the_later_pairs(tm
     estimate[:, :3, 3] *= 0.5
     estimate[3, :3, :3] = estimate[3, :3, :3] @ so3_exp(np.radians([1.0, 0.0, 0.0]))
     write_tum(tmp_path / "trajectory.tum", sequence.stamps_ns, estimate)
+    from nocal_ros.data.importers.common import read_tum_poses
+
     rpe_after = load_script("rpe_after")
-    stamps, poses = rpe_after.read_tum(str(tmp_path / "trajectory.tum"))
+    stamps, poses = read_tum_poses(tmp_path / "trajectory.tum")  # what the script reads the file with
     assert stamps.tolist() == sequence.stamps_ns.tolist()  # nanoseconds exactly, not through a float
     assert rpe_after.main([str(bag), str(tmp_path / "trajectory.tum"), "--from-frame", "4"]) == 0
     printed = capsys.readouterr().out

@@ -12,25 +12,9 @@ alignment of the whole trajectory (the scale of a monocular estimate is not what
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
-
-
-def read_tum(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (int ns, exact: parsed from the text) and camera poses ``(N, 4, 4)`` of a TUM file."""
-    from nocal_ros.geometry import transform_from_translation_quaternion
-
-    stamps, poses = [], []
-    with open(path) as handle:
-        for line in handle:
-            fields = line.split()
-            if not fields or fields[0].startswith("#"):
-                continue
-            seconds, _, fraction = fields[0].partition(".")
-            stamps.append(int(seconds) * 10**9 + int((fraction + "000000000")[:9]))
-            values = np.array([float(v) for v in fields[1:8]])
-            poses.append(transform_from_translation_quaternion(values[:3], values[3:]))
-    return np.array(stamps, dtype=np.int64), np.array(poses)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,8 +27,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from nocal_ros import evaluation
     from nocal_ros.data.bags import read_poses
+    from nocal_ros.data.importers.common import read_tum_poses
 
-    stamps, estimate = read_tum(args.trajectory)
+    stamps, estimate = read_tum_poses(Path(args.trajectory))
     truth = read_poses(args.bag, args.gt_topic, stamps)
     valid = np.isfinite(truth).all(axis=(1, 2))
     stamps, estimate, truth = stamps[valid], estimate[valid], truth[valid]
