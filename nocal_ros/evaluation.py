@@ -90,13 +90,13 @@ def principal_point_error(estimate: "CameraModel | CameraCalibration", truth: "C
     }
 
 
-def undistorted_grid(camera: "CameraModel | CameraCalibration", width: int, height: int) -> np.ndarray:
-    """Undistorted normalised points ``(H * W, 2)`` of every pixel of a ``width x height`` image.
+def undistorted_grid(camera: "CameraModel | CameraCalibration", width: int, height: int, step: int = 1) -> np.ndarray:
+    """Undistorted normalised points ``(N, 2)`` of every ``step``-th pixel (each axis) of a ``width x height`` image.
 
     For a learnt camera of another native size the pixels are mapped with the pixel-centre rule.
     NaN where a parametric lens maps nothing to the pixel.
     """
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    v, u = np.mgrid[0:height:step, 0:width:step].astype(np.float64)
     u, v = u.ravel(), v.ravel()
     if hasattr(camera, "float64_copy"):  # CameraModel
         import torch
@@ -110,10 +110,11 @@ def undistorted_grid(camera: "CameraModel | CameraCalibration", width: int, heig
     return np.asarray(calibration.undistorted_normalised(np.stack((u, v), -1)), dtype=np.float64)
 
 
-def radial_shift(estimate: "CameraModel | CameraCalibration", truth: "CameraCalibration") -> dict[str, float]:
-    """Statistics of the per-pixel shift ``|(x, y)_est - (x, y)_true|`` over the truth's native grid."""
-    true_xy = undistorted_grid(truth, truth.width, truth.height)
-    est_xy = undistorted_grid(estimate, truth.width, truth.height)
+def radial_shift(estimate: "CameraModel | CameraCalibration", truth: "CameraCalibration", step: int = 1) -> dict[str, float]:
+    """Statistics of the per-pixel shift ``|(x, y)_est - (x, y)_true|`` over the truth's native grid
+    (every ``step``-th pixel on each axis; 1: every pixel, DESIGN.md's ``dr``)."""
+    true_xy = undistorted_grid(truth, truth.width, truth.height, step)
+    est_xy = undistorted_grid(estimate, truth.width, truth.height, step)
     shift = np.linalg.norm(est_xy - true_xy, axis=-1)
     valid = np.isfinite(shift)
     if not valid.any():

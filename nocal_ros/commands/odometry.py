@@ -519,21 +519,18 @@ def _camera_history_errors(history: list[dict[str, Any]], like: Any, truth: Any)
     from nocal_ros.lens import CameraCalibration
 
     step = max(1, round(truth.width / HISTORY_GRID_COLUMNS))
-    v, u = np.mgrid[0:truth.height:step, 0:truth.width:step].astype(np.float64)
-    pixels = np.stack((u.ravel(), v.ravel()), -1)
-    true_xy = truth.undistorted_normalised(pixels)
     rows = []
     for entry in history:
         K = np.array([[entry["fx"], 0.0, entry["cx"]], [0.0, entry["fy"], entry["cy"]], [0.0, 0.0, 1.0]])
         camera = CameraCalibration(like.width, like.height, K, np.asarray(entry["D"]), like.distortion_model,
                                    like.camera_name)
-        if (camera.width, camera.height) != (truth.width, truth.height):
-            camera = camera.scaled(truth.width, truth.height)
-        shift = np.linalg.norm(camera.undistorted_normalised(pixels) - true_xy, axis=-1)
-        focal = evaluation.focal_error(camera, truth)
+        try:
+            dr = evaluation.radial_shift(camera, truth, step)["mean"]
+        except ValueError:  # no pixel maps through both lenses
+            dr = float("nan")
         rows.append({"frame": entry["frame"], "stamp_ns": entry["stamp_ns"], "state": entry["state"],
-                     "fx": entry["fx"], "fy": entry["fy"], "focal_error_percent": focal["mean_percent"],
-                     "dr": float(np.nanmean(shift)) if np.isfinite(shift).any() else float("nan")})
+                     "fx": entry["fx"], "fy": entry["fy"],
+                     "focal_error_percent": evaluation.focal_error(camera, truth)["mean_percent"], "dr": dr})
     return rows
 
 
