@@ -93,7 +93,8 @@ def _time(fn, device: torch.device, iterations: int, warmup: int) -> np.ndarray:
 
 
 def _stats(ms: np.ndarray) -> dict[str, float]:
-    return {"median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)), "mean_ms": float(ms.mean())}
+    return {"median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)), "mean_ms": float(ms.mean()),
+            "max_ms": float(ms.max()), "count": int(len(ms))}
 
 
 def _frames(native: tuple[int, int], count: int, seed: int = 0) -> list[np.ndarray]:
@@ -184,11 +185,9 @@ def _vo_frames(native: tuple[int, int], count: int, bag: str) -> tuple[list[np.n
 
 
 def _percentiles(values: list[float] | np.ndarray) -> dict[str, float] | None:
+    """:func:`_stats` of ``values``, or None when there are none (no keyframe was mapped, say)."""
     values = np.asarray(values, dtype=np.float64)
-    if not len(values):
-        return None
-    return {"median_ms": float(np.median(values)), "p90_ms": float(np.percentile(values, 90)),
-            "max_ms": float(values.max()), "count": int(len(values))}
+    return _stats(values) if len(values) else None
 
 
 def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) -> dict[str, Any]:
@@ -209,7 +208,6 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) 
         per_frame.append((time.perf_counter() - start) * 1e3)
     timings = estimator.timings()
     skip = min(warmup, max(len(frames) - 10, 0))
-    mapping_inline = sum(timings["mapping"])
     result: dict[str, Any] = {
         "frames": len(frames),
         "tracking": _percentiles(timings["tracking"][skip:]),
@@ -218,7 +216,6 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) 
         # The estimator's whole per-frame cost with mapping inline (decode, pose head ring, tracking,
         # the keyframes' mapping): what a replay with --synchronous mapping pays per frame on average.
         "estimator_inline_mean_ms": float(np.mean(per_frame)),
-        "estimator_without_mapping": _percentiles(np.asarray(per_frame[skip:]) if not mapping_inline else []),
         "keyframes": int(estimator.counters.keyframes),
         "tracking_states": dict(vars(estimator.counters)),
     }
