@@ -37,12 +37,19 @@ VO_MODELS = ("plumb_bob", "equidistant")
 GIVEN_CALIBRATION_STD = {"focal": 0.002, "principal_point": 0.002, "radial": 0.005, "tangential": 0.0005}
 
 
+#: A guessed camera's pixels are square to within this share of the width (one standard deviation of
+#: ``fx - fy``): cameras' pixels are square to a fraction of a percent, and before the focal length is
+#: observable the windows moved ``fx`` and ``fy`` apart freely (measured: 150 and 247 px on a camera of
+#: 95 px, after 4 keyframes).
+ASPECT_STD = 0.02
+
+
 #: What any camera is known to be before a single window is seen (one standard deviation): focal
 #: lengths within a wide range about the guess (as a share of the width), the principal point near the
 #: image centre (as a share of the width), moderate distortion. Without it the first windows, which
 #: cannot separate the focal length from depth, ran off (a held-out camera 4 % from the f = width guess
 #: went to 130 % error, its principal point 190 px out of a 120 px image; measured).
-GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential": 0.01}
+GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential": 0.01, "aspect": ASPECT_STD}
 
 
 #: A camera nobody calibrated has its principal point held near the image centre in every window (one
@@ -54,17 +61,20 @@ GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential":
 PRINCIPAL_POINT_ANCHOR_STD = 0.05
 
 
-def anchored_prior(camera: "OnlineCamera") -> tuple[np.ndarray, np.ndarray]:
+
+def anchored_prior(camera: "OnlineCamera", initial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The camera prior of the next window: ``(mean parameters (8,), information (8, 8))``.
 
-    The information carried from earlier windows, about the current estimate; for a camera that was not
-    given calibrated, combined with :data:`PRINCIPAL_POINT_ANCHOR_STD` about the image centre.
+    The information carried from earlier windows, about the current estimate (``initial``: only what was
+    known before any window, about the starting camera: for a camera initialisation over the whole map,
+    which holds the carried windows' observations itself); for a camera that was not given calibrated,
+    combined with :data:`PRINCIPAL_POINT_ANCHOR_STD` about the image centre.
     """
     from nocal_ros.odometry.bundle_adjustment import camera_parameters
 
-    calibration = camera.calibration
+    calibration = camera.initial_calibration if initial else camera.calibration
     mean = camera_parameters(calibration)
-    information = camera.prior_information
+    information = camera.initial_information if initial else camera.prior_information
     if camera.given:
         return mean, information
     anchor = np.zeros_like(information)
@@ -84,7 +94,12 @@ def calibration_information(calibration: CameraCalibration, std: dict) -> np.nda
         lens = [std["radial"]] * 4
     else:
         lens = [std["radial"]] * 2 + [std["tangential"]] * 2
-    return np.diag(1.0 / np.square([focal, focal, centre, centre, *lens]))
+    information = np.diag(1.0 / np.square([focal, focal, centre, centre, *lens]))
+    if "aspect" in std:
+        square = np.zeros(8)
+        square[:2] = (1.0, -1.0)
+        information += np.outer(square, square) / (std["aspect"] * calibration.width) ** 2
+    return information
 
 
 def calibration_from_learnt_camera(camera: Any) -> tuple[CameraCalibration, float]:
@@ -143,7 +158,9 @@ class OnlineCamera:
         self.source = source
         self.residual_px = float(residual_px)
         self.covariance: np.ndarray | None = None
-        self.prior_information: np.ndarray = initial_information(calibration, source)
+        self.initial_calibration = calibration
+        self.initial_information: np.ndarray = initial_information(calibration, source)
+        self.prior_information: np.ndarray = self.initial_information
         self.given = source == "file"
         self.updates = 0
         self.keyframes = 0
@@ -176,20 +193,25 @@ class OnlineCamera:
         }
 
     def update(self, calibration: CameraCalibration, covariance: np.ndarray | None,
-               window_information: np.ndarray | None = None, kept_share: float = 0.0) -> None:
+               window_information: np.ndarray | None = None, kept_share: float = 0.0,
+               initialisation: bool = False) -> None:
         """Take a bundle adjustment's camera.
 
         ``window_information``: the information about the camera that the window's observations alone
         gave (the posterior's minus the prior's). The share that leaves with the oldest keyframe
         (``1 - kept_share``) is added to the prior of the next windows: counting the window's
         observations only once, since the next window holds the rest of them again.
+        ``initialisation``: the solve covered every keyframe the carried information came from, so it
+        replaces that information instead of adding to it.
         """
         with self._lock:
             self._calibration = calibration
             self.covariance = covariance
+            if initialisation:
+                self.prior_information = self.initial_information
             if window_information is not None:
                 gained = (1.0 - float(kept_share)) * window_information
-                self.prior_information = gained if self.prior_information is None else self.prior_information + gained
+                self.prior_information = self.prior_information + gained
             self.updates += 1
             self.source = "online"
 
@@ -199,7 +221,9 @@ class OnlineCamera:
             self.source = source
             self.residual_px = float(residual_px)
             self.covariance = None
-            self.prior_information = initial_information(calibration, source)
+            self.initial_calibration = calibration
+            self.initial_information = initial_information(calibration, source)
+            self.prior_information = self.initial_information
             self.given = source == "file"
             self.updates = 0
             self.keyframes = 0

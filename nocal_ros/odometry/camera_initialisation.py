@@ -1,0 +1,199 @@
+"""Camera initialisation: the first estimate of an uncalibrated camera, chosen among focal hypotheses.
+
+The first keyframes of a map are posed through the starting camera (``f = width`` for a camera nobody
+calibrated), which can be far from the truth. A bundle adjustment that starts from those poses keeps
+their projective distortion and settles in the wrong basin: on a 160x120 camera with a 95 px focal
+length (80 degrees across), six keyframes posed at ``f = 160`` led a solve with the lens free to
+224 px and ``k1 = +0.7``; rebuilt from their tracks at ``f = 96`` the same observations solved to
+95 px (measured).
+
+So :func:`initialise_camera` rebuilds the map from its observations alone once per focal hypothesis
+(two-view geometry between the first keyframe and the one that sees the most of its tracks moved
+furthest, PnP on rays for the others, triangulation), bundle-adjusts each with the focal length,
+principal point and lens free, and keeps the one whose every observation, re-triangulated through the
+solved camera and poses, reprojects best (a truncated quadratic, so no hypothesis gains from the
+observations it failed to rebuild). The map as tracking built it, solved the same way, is one of the
+candidates: the result is never worse by that score than the plain solve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from nocal_ros.odometry.bundle_adjustment import (
+    WindowProblem,
+    WindowSolution,
+    bundle_adjust,
+    calibration_from_parameters,
+    camera_parameters,
+)
+from nocal_ros.odometry.frontend import solve_pnp
+from nocal_ros.odometry.initializer import two_view_map
+from nocal_ros.odometry.map import triangulate
+
+#: Starting focal lengths as shares of the image width: about 110 down to 44 degrees across.
+FOCAL_HYPOTHESES = (0.4, 0.5, 0.65, 0.8, 1.0, 1.25)
+#: Fewest tracks the first keyframe must share with the other keyframe of the two-view start.
+MIN_SHARED_TRACKS = 40
+
+
+def _observations(problem: WindowProblem, normalised: np.ndarray) -> list[dict[int, int]]:
+    """Per keyframe row: landmark row -> observation row (finite rays only)."""
+    seen: list[dict[int, int]] = [{} for _ in range(len(problem.poses))]
+    finite = np.isfinite(normalised).all(1)
+    for m in np.flatnonzero(finite):
+        seen[int(problem.keyframe_index[m])][int(problem.point_index[m])] = int(m)
+    return seen
+
+
+def _triangulate_missing(points: np.ndarray, poses: np.ndarray, posed: np.ndarray, seen: list[dict[int, int]],
+                         normalised: np.ndarray) -> None:
+    """Landmarks without a position, from the first and last posed keyframes that see them (in place)."""
+    rows = [k for k in np.flatnonzero(posed)]
+    for q in np.flatnonzero(~np.isfinite(points).all(1)):
+        views = [k for k in rows if q in seen[k]]
+        if len(views) < 2:
+            continue
+        first, last = views[0], views[-1]
+        point = triangulate(poses[first], poses[last], normalised[seen[first][q]][None], normalised[seen[last][q]][None])[0]
+        if not np.isfinite(point).all():
+            continue
+        depths = [((point - poses[k][:3, 3]) @ poses[k][:3, :3])[2] for k in (first, last)]
+        if min(depths) > 0:
+            points[q] = point
+
+
+def rebuild(problem: WindowProblem, calibration) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Poses ``(K, 4, 4)`` and landmarks ``(L, 3)`` (NaN where not rebuilt) from the observations alone,
+    seen through ``calibration``, in the first keyframe's frame with a unit baseline to keyframe ``j``;
+    returns ``(poses, points, j)``, or None when the keyframes cannot all be posed."""
+    count, landmarks = len(problem.poses), len(problem.points)
+    normalised = calibration.undistorted_normalised(problem.pixels)
+    seen = _observations(problem, normalised)
+    threshold = problem.robust_threshold_px / calibration.fx
+    best, best_score = None, 0.0
+    for j in range(1, count):
+        shared = [q for q in seen[0] if q in seen[j]]
+        if len(shared) < MIN_SHARED_TRACKS:
+            continue
+        a = normalised[[seen[0][q] for q in shared]]
+        b = normalised[[seen[j][q] for q in shared]]
+        score = float(np.median(np.linalg.norm(a - b, axis=1))) * np.sqrt(len(shared))
+        if score > best_score:
+            best, best_score = j, score
+    if best is None:
+        return None
+    shared = np.array([q for q in seen[0] if q in seen[best]])
+    start = two_view_map(normalised[[seen[0][q] for q in shared]], normalised[[seen[best][q] for q in shared]],
+                         threshold, min_points=20, min_parallax_deg=0.3)
+    if start is None:
+        return None
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    poses[best] = start.T_ref_cur
+    posed = np.zeros(count, dtype=bool)
+    posed[[0, best]] = True
+    points = np.full((landmarks, 3), np.nan)
+    points[shared[start.inliers]] = start.points
+    _triangulate_missing(points, poses, posed, seen, normalised)
+    while not posed.all():
+        # The keyframe that sees the most rebuilt landmarks next.
+        known = np.isfinite(points).all(1)
+        candidates = np.flatnonzero(~posed)
+        counts = [sum(1 for q in seen[k] if known[q]) for k in candidates]
+        k = int(candidates[int(np.argmax(counts))])
+        rows = np.array([q for q in seen[k] if known[q]], dtype=np.int64)
+        if len(rows) < 12:
+            return None
+        pnp = solve_pnp(points[rows], normalised[[seen[k][q] for q in rows]], threshold)
+        if pnp is None:
+            return None
+        poses[k] = pnp.T_w_c
+        posed[k] = True
+        _triangulate_missing(points, poses, posed, seen, normalised)
+    return poses, points, best
+
+
+def reprojection_score(problem: WindowProblem, solution: WindowSolution) -> float:
+    """Mean truncated squared reprojection error (px^2, at most the robust threshold squared) of every
+    observation, its landmark re-triangulated from its first and last views through the solution."""
+    calibration, poses = solution.calibration, solution.poses
+    normalised = calibration.undistorted_normalised(problem.pixels)
+    seen = _observations(problem, normalised)
+    points = np.full((len(problem.points), 3), np.nan)
+    _triangulate_missing(points, poses, np.ones(len(poses), dtype=bool), seen, normalised)
+    k, q = problem.keyframe_index, problem.point_index
+    points_c = np.einsum("mji,mj->mi", poses[k, :3, :3], points[q] - poses[k, :3, 3])
+    valid = np.isfinite(points_c).all(1) & (points_c[:, 2] > 0)
+    errors = np.full(len(k), np.inf)
+    errors[valid] = np.linalg.norm(calibration.project(points_c[valid]) - problem.pixels[valid], axis=1)
+    errors[~np.isfinite(errors)] = np.inf
+    return float(np.mean(np.minimum(errors, problem.robust_threshold_px) ** 2))
+
+
+def _in_frame_of(problem: WindowProblem, poses: np.ndarray, points: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """A rebuild moved into the problem's frame and scale: its keyframe 0 at the problem's, and the
+    distance of the problem's scale pair kept."""
+    i0, i1 = problem.scale_pair if problem.scale_pair is not None else (0, j)
+    scale = (np.linalg.norm(problem.poses[i1, :3, 3] - problem.poses[i0, :3, 3])
+             / max(np.linalg.norm(poses[i1, :3, 3] - poses[i0, :3, 3]), 1e-12))
+    anchor = problem.poses[0]
+    moved = poses.copy()
+    moved[:, :3, 3] *= scale
+    moved = anchor @ moved
+    moved_points = (points * scale) @ anchor[:3, :3].T + anchor[:3, 3]
+    return moved, moved_points
+
+
+def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = FOCAL_HYPOTHESES
+                      ) -> tuple[WindowSolution, list[tuple[float, float, float]]]:
+    """The best of the plain solve of ``problem`` and a rebuild-and-solve per focal hypothesis.
+
+    ``problem``: every keyframe of the map with keyframe 0 fixed and a ``scale_pair``, the camera free.
+    Returns the chosen solution (its ``points`` NaN and its ``inliers`` False where a rebuild left a
+    landmark out) and ``(start focal, solved focal, score)`` per candidate, the plain solve first.
+    """
+    plain = bundle_adjust(problem)
+    report = [(problem.calibration.fx, plain.calibration.fx, reprojection_score(problem, plain) if plain.success else np.inf)]
+    scored = [(report[0][2], plain)] if plain.success else []
+    width = problem.calibration.width
+    for share in focal_shares:
+        parameters = camera_parameters(problem.calibration)
+        parameters[:2] = share * width
+        parameters[4:] = 0.0
+        parameters[2:4] = ((width - 1) / 2.0, (problem.calibration.height - 1) / 2.0)
+        start = calibration_from_parameters(parameters, problem.calibration)
+        rebuilt = rebuild(problem, start)
+        if rebuilt is None:
+            report.append((start.fx, np.nan, np.inf))
+            continue
+        poses, points, j = rebuilt
+        poses, points = _in_frame_of(problem, poses, points, j)
+        known = np.isfinite(points).all(1)
+        index = np.full(len(points), -1)
+        index[known] = np.arange(known.sum())
+        used = known[problem.point_index]
+        subproblem = replace(problem, calibration=start, poses=poses, points=points[known],
+                             keyframe_index=problem.keyframe_index[used], point_index=index[problem.point_index[used]],
+                             pixels=problem.pixels[used])
+        try:
+            solution = bundle_adjust(subproblem)
+        except Exception:  # noqa: BLE001 - a rebuild the solver rejects is a hypothesis that lost
+            report.append((start.fx, np.nan, np.inf))
+            continue
+        if not solution.success:
+            report.append((start.fx, np.nan, np.inf))
+            continue
+        full_points = np.full((len(problem.points), 3), np.nan)
+        full_points[known] = solution.points
+        inliers = np.zeros(len(problem.pixels), dtype=bool)
+        inliers[used] = solution.inliers
+        residuals = np.full(len(problem.pixels), np.inf)
+        residuals[used] = solution.residuals_px
+        solution = replace(solution, points=full_points, inliers=inliers, residuals_px=residuals)
+        report.append((start.fx, solution.calibration.fx, reprojection_score(problem, solution)))
+        scored.append((report[-1][2], solution))
+    if not scored:
+        return plain, report
+    return min(scored, key=lambda pair: pair[0])[1], report
