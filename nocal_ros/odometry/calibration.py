@@ -61,7 +61,6 @@ GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential":
 PRINCIPAL_POINT_ANCHOR_STD = 0.05
 
 
-
 def anchored_prior(camera: "OnlineCamera", initial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The camera prior of the next window: ``(mean parameters (8,), information (8, 8))``.
 

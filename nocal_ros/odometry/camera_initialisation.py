@@ -22,13 +22,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from nocal_ros.odometry.bundle_adjustment import (
-    WindowProblem,
-    WindowSolution,
-    bundle_adjust,
-    calibration_from_parameters,
-    camera_parameters,
-)
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.bundle_adjustment import WindowProblem, WindowSolution, bundle_adjust
 from nocal_ros.odometry.frontend import solve_pnp
 from nocal_ros.odometry.initializer import two_view_map
 from nocal_ros.odometry.map import triangulate
@@ -51,7 +46,7 @@ def _observations(problem: WindowProblem, normalised: np.ndarray) -> list[dict[i
 def _triangulate_missing(points: np.ndarray, poses: np.ndarray, posed: np.ndarray, seen: list[dict[int, int]],
                          normalised: np.ndarray) -> None:
     """Landmarks without a position, from the first and last posed keyframes that see them (in place)."""
-    rows = [k for k in np.flatnonzero(posed)]
+    rows = np.flatnonzero(posed).tolist()
     for q in np.flatnonzero(~np.isfinite(points).all(1)):
         views = [k for k in rows if q in seen[k]]
         if len(views) < 2:
@@ -157,13 +152,10 @@ def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = 
     plain = bundle_adjust(problem)
     report = [(problem.calibration.fx, plain.calibration.fx, reprojection_score(problem, plain) if plain.success else np.inf)]
     scored = [(report[0][2], plain)] if plain.success else []
-    width = problem.calibration.width
+    like = problem.calibration
     for share in focal_shares:
-        parameters = camera_parameters(problem.calibration)
-        parameters[:2] = share * width
-        parameters[4:] = 0.0
-        parameters[2:4] = ((width - 1) / 2.0, (problem.calibration.height - 1) / 2.0)
-        start = calibration_from_parameters(parameters, problem.calibration)
+        start = CameraCalibration.pinhole(like.width, like.height, share * like.width, D=np.zeros_like(like.D),
+                                          distortion_model=like.distortion_model, camera_name=like.camera_name)
         rebuilt = rebuild(problem, start)
         if rebuilt is None:
             report.append((start.fx, np.nan, np.inf))

@@ -184,10 +184,7 @@ class LocalMapping:
         from nocal_ros.odometry.camera_initialisation import initialise_camera
 
         start = time.perf_counter()
-        if hypotheses:
-            solve = initialise_camera
-        else:
-            solve = bundle_adjust
+        solve = initialise_camera if hypotheses else bundle_adjust
         if self.synchronous:
             solution = solve(problem)
         else:
@@ -349,7 +346,6 @@ class LocalMapping:
             if focal_std > INITIALISATION_FOCAL_STD:
                 # Too few keyframes, or too little motion, to tell the focal length yet: the camera stays
                 # as it was, the window is solved without it, and the next initialisation tries again.
-                self.initialisation_report.append((np.nan, solution.calibration.fx, focal_std))
                 self.bundle_adjust(local_map)
                 return
         if not solution.success:
