@@ -243,8 +243,14 @@ class OdometryNode(Node):
         self.estimator.reset()
         self._pending_arm.clear()
         self._T_base_cam.clear()
-        response.success, response.message = True, "odometry reset: pose is the identity at the next frame"
-        self.get_logger().info(response.message)
+        return self._reply(response, True, "odometry reset: pose is the identity at the next frame")
+
+    def _reply(self, response: Any, success: bool, message: str, field: str = "message") -> Any:
+        """A service's response filled in (``success`` and its ``field`` message) and logged: info when it
+        succeeded, error when not."""
+        response.success = success
+        setattr(response, field, message)
+        (self.get_logger().info if success else self.get_logger().error)(message)
         return response
 
     def _on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -252,12 +258,8 @@ class OdometryNode(Node):
         try:
             model_id = self.estimator.reload(path or None)
         except NocalError as error:  # the running model stays in place
-            response.success, response.message = False, f"reload failed, keeping {self.estimator.model_id}: {error}"
-            self.get_logger().error(response.message)
-            return response
-        response.success, response.message = True, f"loaded {model_id}"
-        self.get_logger().info(response.message)
-        return response
+            return self._reply(response, False, f"reload failed, keeping {self.estimator.model_id}: {error}")
+        return self._reply(response, True, f"loaded {model_id}")
 
     def _on_set_camera_info(self, request: SetCameraInfo.Request,
                             response: SetCameraInfo.Response) -> SetCameraInfo.Response:
@@ -266,35 +268,24 @@ class OdometryNode(Node):
         try:
             calibration = camera_info_to_calibration(request.camera_info)
         except NocalError as error:
-            response.success, response.status_message = False, f"calibration refused: {error}"
-            self.get_logger().error(response.status_message)
-            return response
+            return self._reply(response, False, f"calibration refused: {error}", "status_message")
         calibration = dataclasses.replace(calibration, camera_name=self.camera_name)
         self.estimator.set_calibration(calibration)
         try:
             path = save_calibration(calibration, self.camera_info_url, self.camera_name)
         except NocalError as error:
-            response.success, response.status_message = False, f"calibration in use but not stored: {error}"
-            self.get_logger().error(response.status_message)
-            return response
-        response.success, response.status_message = True, f"calibration in use and stored in {path}"
-        self.get_logger().info(response.status_message)
-        return response
+            return self._reply(response, False, f"calibration in use but not stored: {error}", "status_message")
+        return self._reply(response, True, f"calibration in use and stored in {path}", "status_message")
 
     def _on_save_calibration(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             calibration, residual = self.estimator.camera_info()
             path = save_calibration(calibration, self.camera_info_url, self.camera_name)
         except NocalError as error:
-            response.success, response.message = False, f"calibration not saved: {error}"
-            self.get_logger().error(response.message)
-            return response
-        response.success = True
-        response.message = (f"saved the {calibration.width}x{calibration.height} {calibration.distortion_model} "
-                            f"calibration ({self.estimator.calibration_status()['source']}, fit residual "
-                            f"{residual:.3f} px) to {path}")
-        self.get_logger().info(response.message)
-        return response
+            return self._reply(response, False, f"calibration not saved: {error}")
+        return self._reply(response, True, f"saved the {calibration.width}x{calibration.height} "
+                           f"{calibration.distortion_model} calibration ({self.estimator.calibration_status()['source']}, "
+                           f"fit residual {residual:.3f} px) to {path}")
 
     # -- worker side -----------------------------------------------------------------------------
 
