@@ -148,11 +148,11 @@ def test_a_failure_while_moving_outputs_into_place_puts_the_earlier_ones_back(mo
 
 @pytest.fixture
 def small_tmpfs(tmp_path):
-    """A 144 KiB tmpfs: room for one replay's outputs (~120 KiB) but not for a second copy beside them
+    """A 176 KiB tmpfs: room for one replay's outputs (~150 KiB in 4 KiB pages) but not for a second copy beside them
     (nor, before the staged outputs, for the old code's --overwrite, which then ended in a traceback)."""
     mount = tmp_path / "tmpfs"
     mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=144k", "tmpfs", str(mount)], capture_output=True, text=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=176k", "tmpfs", str(mount)], capture_output=True, text=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.strip()}")
     yield mount
@@ -187,7 +187,8 @@ def test_overwrite_with_a_bag_without_ground_truth_removes_the_old_report(moving
     assert odometry(moving_bag, out) == 0
     assert (out / "report.json").is_file() and (out / "trajectory.png").is_file()
     assert odometry(no_truth, out, "--overwrite") == 0
-    assert sorted(p.name for p in out.iterdir()) == ["calibration.yaml", "odometry", "trajectory.tum"]
+    assert sorted(p.name for p in out.iterdir()) == ["calibration.yaml", "calibration_final.yaml", "odometry", "trajectory.tum",
+                                                     "trajectory_final.tum"]
 
 
 # ---- header stamps that jump back ---------------------------------------------------------------------
@@ -240,3 +241,15 @@ def test_corrupt_metadata_yaml_is_one_line(moving_bag, tmp_path, capsys, content
     err = capsys.readouterr().err.strip()
     assert err.splitlines() == [err] and str(bag) in err and "Traceback" not in err
     assert not (tmp_path / "out" / "odometry").exists()
+
+
+def test_the_final_trajectory_has_the_published_frames_and_its_own_report(moving_bag, tmp_path):
+    import json
+
+    out = tmp_path / "out"
+    assert odometry(moving_bag, out) == 0
+    published, final = np.loadtxt(out / "trajectory.tum"), np.loadtxt(out / "trajectory_final.tum")
+    assert final.shape == published.shape and np.array_equal(final[:, 0], published[:, 0])
+    report = json.loads((out / "report.json").read_text())["final_trajectory"]
+    assert sum(report["posed"].values()) == len(published)
+    assert {"rpe", "ape_sim3", "calibration"} <= set(report)

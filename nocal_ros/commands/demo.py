@@ -66,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
         raise NocalError("--frames must be at least 3")
     start = time.perf_counter()
     # Load the model first: a missing or broken model fails before any rendering.
-    estimator = OdometryEstimator(args.model or None, args.device, method=args.method, synchronous_mapping=True)
+    estimator = OdometryEstimator(args.model or None, args.device, method=args.method, synchronous_mapping=True,
+                                  record_trajectory=True)
     out = Path(args.out)
     _prepare(out)
 

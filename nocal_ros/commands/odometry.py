@@ -4,8 +4,12 @@ Writes into ``DIR``:
 
 * ``odometry``: a rosbag2 with ``/odom`` (nav_msgs/Odometry), ``/tf`` (``odom -> base``) and
   ``/camera_info`` (the learnt camera; same stamp and frame id as each image);
-* ``trajectory.tum``: ``stamp x y z qx qy qz qw`` of the base frame in ``odom``;
-* ``calibration.yaml``: the learnt camera in ROS ``camera_calibration`` format;
+* ``trajectory.tum``: ``stamp x y z qx qy qz qw`` of the base frame in ``odom``, as published;
+* ``trajectory_final.tum``: the same frames posed again through the final map and camera at the end of
+  the replay (:mod:`nocal_ros.odometry.trajectory`; the VO only, when the estimator records them);
+* ``calibration.yaml``: the online camera at the end of the stream, in ROS ``camera_calibration`` format;
+* ``calibration_final.yaml``: the camera of the final solve over the whole map, beside
+  ``trajectory_final.tum``;
 * when the bag has ground truth: ``report.json`` (RPE and APE with and without scale alignment,
   focal and ``dr`` errors) and ``trajectory.png``.
 
@@ -48,7 +52,8 @@ from nocal_ros.geometry import (
 
 log = logging.getLogger(__name__)
 
-OUTPUT_NAMES = ("odometry", "trajectory.tum", "calibration.yaml", "report.json", "trajectory.png")
+OUTPUT_NAMES = ("odometry", "trajectory.tum", "trajectory_final.tum", "calibration.yaml", "calibration_final.yaml",
+                "report.json", "trajectory.png")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     estimator = OdometryEstimator(
         args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
         distortion_model=args.distortion_model, method=args.method, calibration=calibration,
-        synchronous_mapping=True,
+        synchronous_mapping=True, record_trajectory=True,
     )
     result = replay_bag(
         args.bag, args.out, estimator,
@@ -148,6 +153,16 @@ class ReplayResult:
             from nocal_ros.evaluation import format_report
 
             lines.append(format_report(self.report))
+            final = self.report.get("final_trajectory")
+            if final and "rpe" in final:
+                line = (f"through the final map and camera (trajectory_final.tum): RPE "
+                        f"{final['rpe']['translation_m']['rmse'] * 100:.2f} cm, {final['rpe']['rotation_deg']['rmse']:.3f} deg "
+                        f"RMSE per pair")
+                if "ape_sim3" in final and "rmse" in final["ape_sim3"]:
+                    line += f", APE Sim(3) {final['ape_sim3']['rmse']:.4f} m"
+                if final.get("calibration"):
+                    line += f", focal error {final['calibration']['focal_error_percent']:.2f} %"
+                lines.append(line)
         lines += [f"  {name:<17} {path}" for name, path in self.outputs.items()]
         return "\n".join(lines)
 
@@ -391,6 +406,11 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     if frames_in:
         calibration, residual = estimator.camera_info()  # the online camera at the end of the bag
         calibration.save(stage["calibration.yaml"])
+    final = _final_trajectory(estimator, stamps_ns)
+    if final is not None:
+        T_cam_base = invert_transform(estimator.T_base_cam)
+        write_tum(stage["trajectory_final.tum"], stamps_ns, final[0] @ T_cam_base)
+        final[2].save(stage["calibration_final.yaml"])
 
     replay = ReplayResult(
         out_dir=stage.out_dir, outputs={}, stamps_ns=stamps_ns,
@@ -401,7 +421,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                 "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
                 "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
                 "camera_history": camera_history,
-                "calibration_status": estimator.calibration_status()},
+                "calibration_status": estimator.calibration_status(), "final_trajectory": final},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
@@ -412,6 +432,17 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
         if plot and len(truth.stamps_ns) >= 2:
             plot_replay(replay, truth, stage["trajectory.png"])
     return replay
+
+
+def _final_trajectory(estimator: Any, stamps_ns: np.ndarray) -> tuple[np.ndarray, list[str], Any] | None:
+    """``(T_odom_cam (N, 4, 4), how (N,), calibration)`` through the final map and camera at ``stamps_ns``,
+    or None when the estimator does not record them or they do not cover those stamps (a restart mid-bag)."""
+    if not getattr(estimator, "record_trajectory", False) or getattr(estimator, "method", "vo") != "vo":
+        return None
+    stamps, poses, how = estimator.final_trajectory()
+    if len(stamps) != len(stamps_ns) or not np.array_equal(stamps, stamps_ns):
+        return None
+    return poses, how, estimator.camera_info()[0]
 
 
 @dataclass
@@ -443,10 +474,10 @@ def _ground_truth(bag: Path, gt_topic: str | None, camera_info_topic: str | None
     return GroundTruth(stamps_ns[valid], T_w_cam[valid], calibration)
 
 
-def _matched(replay: ReplayResult, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _matched(stamps_ns: np.ndarray, T_odom_cam: np.ndarray, truth: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Estimated and true camera poses at the stamps both have, both starting at the identity."""
-    common, est_index, gt_index = np.intersect1d(replay.stamps_ns, truth.stamps_ns, return_indices=True)
-    estimate = replay.T_odom_cam[est_index]
+    common, est_index, gt_index = np.intersect1d(stamps_ns, truth.stamps_ns, return_indices=True)
+    estimate = T_odom_cam[est_index]
     T_gt = truth.T_w_cam[gt_index]
     if len(common):
         # Both in the first matched camera frame, so the unaligned start is shared.
@@ -463,7 +494,7 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     """
     from nocal_ros import evaluation
 
-    stamps, estimate, T_gt = _matched(replay, truth)
+    stamps, estimate, T_gt = _matched(replay.stamps_ns, replay.T_odom_cam, truth)
     report: dict[str, Any] = {
         "bag_frames": int(replay.frames_in),
         "odom_poses": int(replay.extras.get("poses", len(replay.stamps_ns))),
@@ -479,6 +510,15 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     }
     if len(stamps) >= 2:
         report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
+    final = replay.extras.get("final_trajectory")
+    if final is not None and len(stamps) >= 2:
+        # The frames posed again through the final map and camera (what a replay can do at its end).
+        final_stamps, final_estimate, final_truth = _matched(replay.stamps_ns, final[0], truth)
+        report["final_trajectory"] = evaluation.summary(
+            evaluation.trajectory_errors(final_stamps, final_estimate, final_truth))
+        report["final_trajectory"]["posed"] = {how: int(sum(h == how for h in final[1])) for how in sorted(set(final[1]))}
+        if truth.calibration is not None:
+            report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
     report["method"] = getattr(estimator, "method", "vo")
     tracking = replay.extras.get("tracking") or []
     if tracking:
@@ -560,6 +600,6 @@ def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
     """Top view of estimate vs truth and the per-pair error over time."""
     from nocal_ros import evaluation
 
-    stamps, estimate, T_gt = _matched(replay, truth)
+    stamps, estimate, T_gt = _matched(replay.stamps_ns, replay.T_odom_cam, truth)
     evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}",
                                calibration_history=(replay.report or {}).get("calibration_history"))

@@ -416,7 +416,13 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
             distance = np.linalg.norm(points[point_index] - poses[keyframe_index, :3, 3], axis=1)
             landmark_sigma = _LANDMARK_PRIOR_SCALE * max(float(np.median(distance)), 1e-6)
             with _quiet_native_stdout():
-                marginals = _marginals(gtsam, graph, result, used, errors, len(points), landmark_sigma)
+                try:
+                    marginals = _marginals(gtsam, graph, result, used, errors, len(points), landmark_sigma)
+                except RuntimeError:
+                    # Too poorly conditioned for Cholesky with the weak prior (a whole map of 32
+                    # keyframes, measured): once more with landmarks held to their median distance.
+                    marginals = _marginals(gtsam, graph, result, used, errors, len(points),
+                                           landmark_sigma / _LANDMARK_PRIOR_SCALE)
             if camera_wanted:
                 tangent = marginals.marginalCovariance(K(0))
                 camera_covariance = tangent[np.ix_(_TANGENT_OF_PARAMETER, _TANGENT_OF_PARAMETER)]

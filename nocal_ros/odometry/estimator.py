@@ -212,6 +212,8 @@ class OdometryEstimator:
         synchronous_mapping: run local mapping before :meth:`process` returns (replays that must repeat
             exactly) instead of in its worker thread.
         settings: VO thresholds (:class:`~nocal_ros.odometry.tracking.TrackingSettings`).
+        record_trajectory: keep what :meth:`final_trajectory` needs (every frame's tracks: for replays,
+            not for a node that runs for hours).
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -231,6 +233,7 @@ class OdometryEstimator:
         calibration: "CameraCalibration | None" = None,
         synchronous_mapping: bool = False,
         settings: TrackingSettings | None = None,
+        record_trajectory: bool = False,
     ) -> None:
         if method not in METHODS:
             raise NocalError(f"odometry method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -250,6 +253,7 @@ class OdometryEstimator:
         self.precision = precision
         self.cuda_graphs = cuda_graphs
         self.synchronous_mapping = bool(synchronous_mapping)
+        self.record_trajectory = bool(record_trajectory)
         self.settings = settings or TrackingSettings()
         self.counters = OdometryCounters()
         self._T_base_cam = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
@@ -338,6 +342,9 @@ class OdometryEstimator:
             self._scale = ScaleEstimate()
             self._arm_stamps.clear()
             self._arm_poses.clear()
+            # (frame, stamp, published T_odom_cam, VO map id or None) per frame, for final_trajectory
+            self._trajectory_log: list[tuple[int, int, np.ndarray, int | None]] = []
+            self._map_scales: dict[int, float] = {}  # map id -> the last scale its poses were published with
             if self._vo is not None:
                 self._vo.reset()
 
@@ -586,7 +593,7 @@ class OdometryEstimator:
         height, width = image.shape[:2]
         camera = self._online_camera(width, height)
         if self._vo is None:
-            self._vo = VisualOdometry(camera, self.settings, self.synchronous_mapping)
+            self._vo = VisualOdometry(camera, self.settings, self.synchronous_mapping, record=self.record_trajectory)
         frame = self._frame
         self._frame += 1
         self._frame_stamps[frame] = stamp_ns
@@ -603,6 +610,7 @@ class OdometryEstimator:
             self._previous_stamp = stamp_ns
             T = self._T_odom_base @ self._T_base_cam
             self._remember(frame, T)
+            self._log_frame(frame, stamp_ns, T, None)
             unknown = np.eye(6) * UNKNOWN_VARIANCE
             return self._result(stamp_ns, np.eye(4), np.zeros(6), unknown, "start" if status == "ok" else status, 0,
                                 0.0, "none", vo_frame.state, keyframe=vo_frame.keyframe)
@@ -648,6 +656,9 @@ class OdometryEstimator:
                         T_new, source = T_prev @ T_ci_cj, "pose_head"
                         self.counters.pose_head_fallbacks += 1
         self._remember(frame, T_new)
+        if vo_frame.state == "ok":
+            self._map_scales[vo_frame.map_id] = self._scale.scale
+        self._log_frame(frame, stamp_ns, T_new, vo_frame.map_id if vo_frame.state == "ok" else None)
         T_ci_cj = invert_transform(T_prev) @ T_new
         return self._integrate(stamp_ns, T_ci_cj, max(gap, 1), inference_ms, status, source, sigma,
                                tracking=vo_frame.state, keyframe=vo_frame.keyframe)
@@ -678,14 +689,67 @@ class OdometryEstimator:
         length = float(np.linalg.norm(T[:3, 3]))
         return (length if np.isfinite(length) else None), ms
 
+    def _log_frame(self, frame: int, stamp_ns: int, T_odom_cam: np.ndarray, map_id: int | None) -> None:
+        if self.record_trajectory:
+            self._trajectory_log.append((frame, stamp_ns, T_odom_cam.copy(), map_id))
+
+    def final_trajectory(self) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """The frames since the last reset posed through the final map and camera (replays; see
+        :mod:`nocal_ros.odometry.trajectory`): ``(stamps (N,), T_odom_cam (N, 4, 4), how (N,))``.
+
+        Call it at the end of a stream: it first solves each map whole, with the camera (which
+        :meth:`camera_info` then reports).
+
+        Needs ``record_trajectory=True``. A frame tracked in a map, or whose tracks made it, is posed in
+        it again and placed in ``odom`` by that map's origin and last scale (the map's first frame goes
+        where the frames before it lead); any other frame (lost, or initialising a map never made) keeps
+        its published motion from the frame before it.
+        ``how`` says which: ``"keyframe"``, ``"pnp"``, ``"keyframe_relative"`` or ``"published"``.
+        """
+        from nocal_ros.odometry.trajectory import final_map_poses
+
+        with self._lock:
+            if not self.record_trajectory:
+                raise NocalError("final_trajectory needs an estimator made with record_trajectory=True")
+            log_ = list(self._trajectory_log)
+            map_poses = {}
+            if self._vo is not None:
+                self._vo.mapping.wait()
+                # Keyframes outside the last windows were solved through an older camera, and their
+                # landmarks moved since (measured on heldout_160: the old keyframes' own observations
+                # posed them 1.4 deg from where they stood): first a camera initialisation's solve over
+                # each whole map (every keyframe, the camera and lens free from the guess's prior).
+                for local_map in {id(r.local_map): r.local_map for r in self._vo.records}.values():
+                    if len(local_map.keyframes) >= 3:
+                        self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
+                map_poses = final_map_poses(self._vo.records, self._vo.camera.calibration,
+                                            self.settings.pixel_threshold, self.settings.min_pnp_inliers)
+        stamps, poses, how = [], [], []
+        origins: dict[int, np.ndarray] = {}  # map id -> T_odom_map
+        previous: tuple[np.ndarray, np.ndarray] | None = None  # (published, final) of the frame before
+        for frame, stamp_ns, T_published, _ in log_:
+            chained = T_published if previous is None else previous[1] @ invert_transform(previous[0]) @ T_published
+            T, source = chained, "published"
+            pose = map_poses.get(frame)
+            if pose is not None:
+                T_metric = _scaled(pose.T_map_cam, self._map_scales.get(pose.map_id, 1.0))
+                # A map is placed in odom where the frames before its first one lead (as published).
+                origin = origins.setdefault(pose.map_id, chained @ invert_transform(T_metric))
+                T, source = origin @ T_metric, pose.how
+            T = T.copy()
+            T[:3, :3] = nearest_rotation(T[:3, :3])
+            previous = (T_published, T)
+            stamps.append(stamp_ns)
+            poses.append(T)
+            how.append(source)
+        return np.asarray(stamps, dtype=np.int64), np.asarray(poses).reshape(-1, 4, 4), how
+
     def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
         self._published[frame] = T_odom_cam
         _trim(self._published)
 
     def _metric_pose(self, T_map_cam: np.ndarray) -> np.ndarray:
-        T = np.array(T_map_cam, dtype=np.float64)
-        T[:3, 3] *= self._scale.scale
-        return T
+        return _scaled(T_map_cam, self._scale.scale)
 
     def _start_map(self, vo_frame: VOFrame, frame: int, key: int) -> None:
         """Anchor a new map in odom at the pose published for its first keyframe; its first scale guess."""
@@ -765,6 +829,13 @@ class OdometryEstimator:
             scale_source=scale_source,
             keyframe=keyframe,
         )
+
+
+def _scaled(T: np.ndarray, scale: float) -> np.ndarray:
+    """A map pose with its translation in metres."""
+    T = np.array(T, dtype=np.float64)
+    T[:3, 3] *= scale
+    return T
 
 
 def _trim(history: OrderedDict) -> None:

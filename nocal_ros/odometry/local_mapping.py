@@ -274,7 +274,7 @@ class LocalMapping:
             return "intrinsics"
         return "focal" if keyframes >= focal else "fixed"
 
-    def bundle_adjust(self, local_map: LocalMap, initialise: bool = False) -> None:
+    def bundle_adjust(self, local_map: LocalMap, initialise: bool = False, whole_map: bool = False) -> None:
         """Windowed bundle adjustment over keyframes, landmarks and the camera (see the module notes).
 
         ``initialise``: a camera initialisation instead: every keyframe of the map (up to
@@ -285,10 +285,17 @@ class LocalMapping:
         length of 95 px: the windows took it to 190 px, aspect 2:1, and then on to 330 px with k1 of
         1.9; a solve over its first 9 keyframes with the lens free found 117 px against 114 true on the
         held-out camera where the windows then held 154).
+
+        ``whole_map`` (with ``initialise``): the initialisation's solve over every keyframe of the map (the
+        end of a replay: :mod:`nocal_ros.odometry.trajectory`), without hypotheses or covariance (the
+        camera keeps the last one); a camera never initialised stays as it is.
         """
         from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem, calibration_from_parameters
 
-        if initialise:
+        if whole_map:
+            window = local_map.window(len(local_map.keyframes))
+            held = 0
+        elif initialise:
             window = local_map.window(self.settings.initialisation_keyframes)
             held = 0
         else:
@@ -329,6 +336,8 @@ class LocalMapping:
         prior_mean, prior_information = anchored_prior(self.camera, initial=initialise)
         prior = CameraPrior(calibration_from_parameters(prior_mean, calibration), prior_information)
         freedom = self.camera_freedom(initialise)
+        if whole_map and self.camera.updates == 0 and not self.camera.given:
+            freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
         # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
         # oldest keyframe to a later one is held at its value from the previous windows.
         scale_pair = None if held >= 2 else (0, min(held + self.settings.scale_baseline, len(window) - 1))
@@ -337,9 +346,12 @@ class LocalMapping:
             point_index=point_index, pixels=pixels, camera=freedom, camera_prior=prior,
             robust_threshold_px=self.settings.pixel_threshold, scale_pair=scale_pair,
             relative_tolerance=self.settings.relative_tolerance,
+            # A whole map's solve is too poorly conditioned for GTSAM's covariance now and then (the
+            # fisheye bag's 66 keyframes, measured), and the end of a replay has no use for it.
+            camera_covariance=not whole_map,
         )
         # The first initialisation chooses among focal hypotheses (camera_initialisation's notes).
-        hypotheses = initialise and self.camera.updates == 0
+        hypotheses = initialise and self.camera.updates == 0 and not whole_map
         solution = self._solve(problem, hypotheses=hypotheses)
         if hypotheses and solution.success and solution.camera_covariance is not None:
             focal_std = np.sqrt(max(solution.camera_covariance[0, 0], 0.0)) / solution.calibration.fx
@@ -371,7 +383,9 @@ class LocalMapping:
             # The camera changes with the map it was solved with, under the same lock: tracking reads
             # both at once, and landmarks of the new camera with pixels undistorted by the old one
             # gave a 10.8 deg jump in a real-time replay (measured).
-            if freedom != "fixed" and solution.camera_covariance is not None:
+            if freedom != "fixed" and whole_map:
+                self.camera.update(solution.calibration, self.camera.covariance)
+            elif freedom != "fixed" and solution.camera_covariance is not None:
                 # The next window holds the last keyframes of this solve again: their share stays out of
                 # the carried information.
                 kept = min(len(window) - held, self.settings.window) - 1

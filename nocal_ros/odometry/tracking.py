@@ -31,6 +31,7 @@ from nocal_ros.odometry.frontend import FeatureTracker, TrackedFrame, TrackerSet
 from nocal_ros.odometry.initializer import rotation_ransac, two_view_map, unit_rays
 from nocal_ros.odometry.local_mapping import LocalMapping, MappingSettings, refine_two_keyframes
 from nocal_ros.odometry.map import Keyframe, LocalMap
+from nocal_ros.odometry.trajectory import FrameRecord
 
 
 @dataclass
@@ -105,9 +106,14 @@ class VOFrame:
 
 
 class VisualOdometry:
-    """Frames in, poses in the local map out (see the module notes). Not thread-safe: one caller."""
+    """Frames in, poses in the local map out (see the module notes). Not thread-safe: one caller.
 
-    def __init__(self, camera: OnlineCamera, settings: TrackingSettings | None = None, synchronous: bool = False) -> None:
+    ``record``: keep every tracked frame's tracks in :attr:`records`, to pose them again through the
+    final map and camera (:mod:`nocal_ros.odometry.trajectory`; replays only, as they grow with the stream).
+    """
+
+    def __init__(self, camera: OnlineCamera, settings: TrackingSettings | None = None, synchronous: bool = False,
+                 record: bool = False) -> None:
         self.camera = camera
         self.settings = settings or TrackingSettings()
         self.tracker = FeatureTracker(self.settings.tracker)
@@ -125,10 +131,14 @@ class VisualOdometry:
         #: inline in synchronous mode is left out, so the figure is what a frame costs the tracking thread.
         self.milliseconds: deque[float] = deque(maxlen=500)
         self._mapping_inline_s = 0.0
+        self.record = record
+        self.records: list[FrameRecord] = []
+        self._initialising: list[tuple[int, np.ndarray, TrackedFrame]] = []  # (frame, R_ref_cur, tracks) since the reference
 
     def reset(self) -> None:
         self.mapping.wait()
         self.tracker.reset()
+        self.records.clear()
         self.map = None
         self.state = "initialising"
         self._reference = None
@@ -188,6 +198,7 @@ class VisualOdometry:
         current = self.tracker.current()
         self._reference = (frame, stamp_ns, current)
         self._chain = (current, np.eye(3))
+        self._initialising.clear()
 
     def _chained_rotation(self, tracked: TrackedFrame, threshold: float) -> np.ndarray:
         """``R_ref_cur`` as the product of frame-to-frame rotations fitted to the tracks.
@@ -223,6 +234,8 @@ class VisualOdometry:
             return VOFrame(state, rotation_from_reference=np.eye(3), map_id=self.map_id, reference_frame=frame,
                            tracks=len(self.tracker))
         rotation = self._chained_rotation(tracked, threshold)
+        if self.record:
+            self._initialising.append((frame, rotation, tracked))
         x_ref = calibration.undistorted_normalised(reference.pixels[rows])
         x_cur = calibration.undistorted_normalised(tracked.pixels[found])
         min_parallax = max(settings.init_parallax_deg, np.degrees(settings.init_parallax_px / calibration.fx))
@@ -256,6 +269,14 @@ class VisualOdometry:
         self._last_keyframe_inliers = int(result.inliers.sum())
         self._last = (keyframe, np.eye(4))
         self._previous = None
+        first = local_map.keyframes[0]
+        self._record(first.frame, local_map, first, np.eye(4), reference)
+        for between, rotation, tracks in self._initialising[:-1]:  # the last one is this frame
+            T_ref_between = np.eye(4)
+            T_ref_between[:3, :3] = rotation
+            self._record(between, local_map, first, T_ref_between, tracks)
+        self._initialising.clear()
+        self._record(frame, local_map, keyframe, np.eye(4), current)
         self._submit(local_map, keyframe)
         return VOFrame("ok", T_map_cam=keyframe.T_w_c.copy(), covariance=None, map_id=self.map_id,
                        reference_frame=reference_frame, new_map=True, keyframe=True, tracks=len(tracked.ids),
@@ -312,12 +333,20 @@ class VisualOdometry:
             new_keyframe = self.map.add_keyframe(frame, stamp_ns, T, current.ids, current.pixels)
             self._last = (new_keyframe, np.eye(4))  # before mapping moves it
             self._last_keyframe_inliers = inliers
+            self._record(frame, self.map, new_keyframe, np.eye(4), current)
             self._submit(self.map, new_keyframe)
         else:
             self._last = (anchor, T_anchor_cur)
+            self._record(frame, self.map, anchor, T_anchor_cur, tracked)
         return VOFrame("ok", T_map_cam=T.copy(), covariance=pnp.covariance, map_id=self.map_id,
                        reference_frame=self.map.keyframes[0].frame, keyframe=keyframe,
                        tracks=len(tracked.ids), inliers=inliers, T_prev_cur=T_prev_cur)
+
+    def _record(self, frame: int, local_map: LocalMap, reference: Keyframe, T_kf_cam: np.ndarray,
+                tracks: TrackedFrame) -> None:
+        if self.record:
+            self.records.append(FrameRecord(frame, self.map_id, local_map, reference, T_kf_cam.copy(),
+                                            tracks.ids.copy(), tracks.pixels.copy()))
 
     def _is_keyframe(self, frame: int, tracked: TrackedFrame, inliers: int, T_w_c: np.ndarray) -> bool:
         settings = self.settings

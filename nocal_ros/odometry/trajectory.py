@@ -1,0 +1,83 @@
+"""The trajectory through the final map and camera, for replays (what ORB-SLAM writes at shutdown).
+
+Live, each frame is posed once, against the map and camera of that moment, and published; nothing later
+changes it. A replay can do better at its end: the camera has converged and bundle adjustment has moved
+the keyframes and landmarks, so every frame tracked in a map is posed again from its own tracks. ORB-SLAM
+saves its frame trajectory the same way, each frame relative to its reference keyframe as the keyframes
+stand at shutdown; here the frames are posed again by PnP on their tracks' final landmarks through the
+final camera (the frames tracked through the first guess of an uncalibrated camera were measured through
+the wrong camera, and their keyframe-relative motions carry that error), and their keyframe-relative
+pose, with the keyframe as it stands, is the fallback and the PnP's start.
+
+The frames' records are kept only when asked for (``VisualOdometry(record=True)``): a live node would
+hold every frame's tracks for as long as it runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nocal_ros.odometry.frontend import solve_pnp
+from nocal_ros.odometry.map import Keyframe, LocalMap
+
+
+@dataclass
+class FrameRecord:
+    """One frame tracked in a map, as needed to pose it again at the end.
+
+    Attributes:
+        frame: the stream's frame counter.
+        map_id: the tracking's id of that map.
+        local_map: the map it was tracked in (or, while initialising, the map its tracks then made).
+        reference: the keyframe it was posed relative to (itself for a keyframe).
+        T_kf_cam: ``(4, 4)`` its pose relative to ``reference`` when tracked (while initialising, the
+            rotation from the reference, with no translation).
+        ids, pixels: its tracks, ``(N,)`` and ``(N, 2)`` native pixels.
+    """
+
+    frame: int
+    map_id: int
+    local_map: LocalMap
+    reference: Keyframe
+    T_kf_cam: np.ndarray
+    ids: np.ndarray
+    pixels: np.ndarray
+
+
+@dataclass
+class FinalPose:
+    """A frame's pose in its map at the end: ``how`` it was found (see :func:`final_map_poses`)."""
+
+    map_id: int
+    local_map: LocalMap
+    T_map_cam: np.ndarray
+    how: str
+
+
+def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: float,
+                    min_inliers: int = 15) -> dict[int, FinalPose]:
+    """Each recorded frame's pose in its map as the map and ``calibration`` stand now.
+
+    Returns ``{frame: FinalPose}`` with ``how`` one of ``"keyframe"`` (the keyframe's own,
+    bundle-adjusted pose), ``"pnp"`` (posed again on its tracks' landmarks), or ``"keyframe_relative"``
+    (too few of its tracks have landmarks: its pose relative to its reference keyframe, as tracked).
+    """
+    threshold = pixel_threshold / calibration.fx
+    poses: dict[int, FinalPose] = {}
+    for record in records:
+        with record.local_map.lock:
+            T_w_ref = record.reference.T_w_c.copy()
+            if record.reference.frame == record.frame:
+                poses[record.frame] = FinalPose(record.map_id, record.local_map, T_w_ref, "keyframe")
+                continue
+            mask, positions = record.local_map.landmark_positions(record.ids)
+        guess = T_w_ref @ record.T_kf_cam
+        x = calibration.undistorted_normalised(record.pixels[mask])
+        pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers)
+        if pnp is None:
+            poses[record.frame] = FinalPose(record.map_id, record.local_map, guess, "keyframe_relative")
+        else:
+            poses[record.frame] = FinalPose(record.map_id, record.local_map, pnp.T_w_c, "pnp")
+    return poses

@@ -1,0 +1,62 @@
+"""The trajectory through the final map and camera (nocal_ros.odometry.trajectory and
+OdometryEstimator.final_trajectory): frames posed again at the end of a replay."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from nocal_ros.geometry import invert_transform
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.map import LocalMap
+from nocal_ros.odometry.trajectory import FrameRecord, final_map_poses
+
+CAMERA = CameraCalibration(320, 240, np.array([[250.0, 0, 162.0], [0, 248.0, 118.0], [0, 0, 1]]),
+                           np.array([-0.2, 0.05, 0.001, -0.0005, 0.0]), "plumb_bob", "test")
+
+
+def pose(rotation_vector, translation) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rotation_vector, dtype=np.float64))[0]
+    T[:3, 3] = translation
+    return T
+
+
+def opencv_pixels(T_w_c: np.ndarray, points_w: np.ndarray) -> np.ndarray:
+    """The landmarks' pixels through CAMERA, projected by OpenCV (the independent reference)."""
+    T_c_w = invert_transform(T_w_c)
+    rvec = cv2.Rodrigues(T_c_w[:3, :3])[0]
+    pixels, _ = cv2.projectPoints(points_w, rvec, T_c_w[:3, 3], CAMERA.K, CAMERA.D)
+    return pixels.reshape(-1, 2)
+
+
+def test_frames_are_posed_again_on_the_final_landmarks_through_the_final_camera():
+    rng = np.random.default_rng(3)
+    points = np.column_stack((rng.uniform(-1.5, 1.5, 150), rng.uniform(-1.0, 1.0, 150), rng.uniform(3.0, 6.0, 150)))
+    ids = np.arange(150, dtype=np.int64)
+    local_map = LocalMap()
+    first = local_map.add_keyframe(0, 0, np.eye(4), ids, opencv_pixels(np.eye(4), points))
+    local_map.landmarks.update({int(i): p for i, p in zip(ids, points)})
+
+    T_true = pose([0.02, -0.05, 0.01], [0.12, -0.03, 0.05])
+    # Tracked through a wrong camera, the frame's pose relative to its keyframe was 2 deg and 4 cm off.
+    T_tracked = T_true @ pose([0.0, 0.035, 0.0], [0.04, 0.0, 0.0])
+    pnp_record = FrameRecord(5, 1, local_map, first, T_tracked, ids, opencv_pixels(T_true, points))
+    # Only 8 of its tracks have landmarks: too few to pose it again.
+    few = np.arange(1000, 1150, dtype=np.int64)
+    few[:8] = ids[:8]
+    relative_record = FrameRecord(6, 1, local_map, first, T_tracked, few, opencv_pixels(T_true, points))
+    keyframe_record = FrameRecord(0, 1, local_map, first, np.eye(4), ids, first.pixels)
+    # Bundle adjustment moved the keyframe after the frames were tracked.
+    moved = pose([0.001, 0.0, 0.0], [0.0, 0.001, 0.0])
+    first.T_w_c = moved.copy()
+
+    poses = final_map_poses([pnp_record, relative_record, keyframe_record], CAMERA, pixel_threshold=1.0)
+
+    assert poses[5].how == "pnp"
+    np.testing.assert_allclose(poses[5].T_map_cam, T_true, atol=1e-6)
+    assert poses[6].how == "keyframe_relative"
+    np.testing.assert_allclose(poses[6].T_map_cam, moved @ T_tracked, atol=1e-12)
+    assert poses[0].how == "keyframe"
+    np.testing.assert_allclose(poses[0].T_map_cam, moved, atol=1e-12)
+    assert all(p.map_id == 1 and p.local_map is local_map for p in poses.values())
