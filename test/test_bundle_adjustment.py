@@ -159,6 +159,31 @@ def test_noiseless_window_recovers_camera_poses_and_points(model):
     assert np.all(np.linalg.eigvalsh(solution.pose_covariances[4]) > 0)
 
 
+def test_measured_positions_make_a_window_metric_without_fixed_poses():
+    """An arm's camera positions at four keyframes, as factors, hold the gauge and the scale: from a
+    start at half the scale (a monocular map's unit), the poses, points and camera come back exactly."""
+    camera, poses, _, points, kf, pt, pixels = make_window("plumb_bob", seed=5, keyframes=8)
+    rng = np.random.default_rng(6)
+    start, poses0, points0 = perturbed_start(camera, poses, np.zeros(len(poses), bool), points, rng)
+    poses0[:, :3, 3] *= 0.5
+    points0 = points0 * 0.5
+    rows = np.array([0, 2, 5, 7])
+    problem = WindowProblem(start, poses0, np.zeros(len(poses), bool), points0, kf, pt, pixels, max_iterations=100,
+                            relative_tolerance=1e-14, positions=(rows, poses[rows, :3, 3]), position_sigma=1e-4)
+    solution = bundle_adjust(problem)
+    assert solution.success, solution.message
+    assert solution.final_rms_px < 1e-6
+    assert np.abs(solution.poses - poses).max() < 1e-6
+    assert np.abs(camera_parameters(solution.calibration)[:4] / camera_parameters(camera)[:4] - 1).max() < 1e-6
+    # Two measured positions do not fix the gauge: without fixed poses that is bad input.
+    problem.positions = (rows[:2], poses[rows[:2], :3, 3])
+    with pytest.raises(BundleAdjustmentInputError, match="two fixed poses"):
+        bundle_adjust(problem)
+    problem.positions = (np.array([0, 2, 99]), poses[[0, 2, 7], :3, 3])
+    with pytest.raises(BundleAdjustmentInputError, match="positions must name keyframe rows"):
+        bundle_adjust(problem)
+
+
 # Bounds measured on seeds 10..21 of these windows (0.5 px noise, 5 % outliers of 10-40 px, focal
 # 15 % off at the start, Cauchy at 2 px):
 # plumb_bob (6 keyframes, 640x480): focal error median 0.50 %, at most 2.3 %, rotation at most

@@ -60,3 +60,26 @@ def test_frames_are_posed_again_on_the_final_landmarks_through_the_final_camera(
     assert poses[0].how == "keyframe"
     np.testing.assert_allclose(poses[0].T_map_cam, moved, atol=1e-12)
     assert all(p.map_id == 1 and p.local_map is local_map for p in poses.values())
+
+
+def test_a_map_moved_into_other_units_moves_its_frames_with_it():
+    """LocalMap.transform against its closed form, and a frame's keyframe-relative pose follows it."""
+    local_map = LocalMap()
+    first = local_map.add_keyframe(0, 0, pose([0.1, 0.0, 0.0], [0.2, 0.0, 0.1]), np.arange(3), np.zeros((3, 2)))
+    local_map.landmarks[1] = np.array([0.5, -0.2, 3.0])
+    T_tracked = pose([0.0, 0.02, 0.0], [0.05, 0.01, 0.0])
+    record = FrameRecord(4, 1, local_map, first, T_tracked, np.arange(3), np.zeros((3, 2)), local_map.unit_scale)
+    before = first.T_w_c.copy()
+    R, t = cv2.Rodrigues(np.array([0.0, 0.3, 0.1]))[0], np.array([1.0, -2.0, 0.5])
+    local_map.transform(2.5, R, t)
+    np.testing.assert_allclose(first.T_w_c[:3, :3], R @ before[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(first.T_w_c[:3, 3], 2.5 * R @ before[:3, 3] + t, atol=1e-12)
+    np.testing.assert_allclose(local_map.landmarks[1], 2.5 * R @ np.array([0.5, -0.2, 3.0]) + t, atol=1e-12)
+    assert local_map.unit_scale == 2.5
+    moved = final_map_poses([record], CAMERA, pixel_threshold=1.0)[4]
+    assert moved.how == "keyframe_relative"
+    # The same similarity applied to the frame's pose as it was: T_w_ref @ T_kf_cam, both moved.
+    expected = np.eye(4)
+    expected[:3, :3] = R @ (before @ T_tracked)[:3, :3]
+    expected[:3, 3] = 2.5 * R @ (before @ T_tracked)[:3, 3] + t
+    np.testing.assert_allclose(moved.T_map_cam, expected, atol=1e-12)

@@ -57,7 +57,8 @@ distance) so that a track of nearly parallel rays leaves the system determinate 
 anything else (without it 3 of 12 plumb_bob and 2 of 12 fisheye test windows failed on one such
 landmark).
 
-Bad input (NaN, wrong shapes, an index out of range, fewer than two fixed poses, a camera model or
+Bad input (NaN, wrong shapes, an index out of range, fewer than two fixed poses without a ``scale_pair``
+or three measured ``positions``, a camera model or
 ``k3`` GTSAM cannot represent, a free keyframe without observations) raises
 :class:`BundleAdjustmentInputError` naming the field. A failure inside the solver does NOT raise:
 the solution carries the start values, ``success = False`` and GTSAM's message, so the worker can
@@ -175,6 +176,10 @@ class WindowProblem:
     robust_loss: str = "cauchy"  # "cauchy" | "huber" (measured: module notes)
     camera_covariance: bool = True  # False: skip the camera's marginal (saves its cost, BENCHMARKS.md)
     scale_pair: tuple[int, int] | None = None  # keyframe rows whose distance is held: with one fixed pose, the gauge
+    # Measured camera positions (an arm's): (keyframe rows (P,), positions (P, 3)) in the poses' frame and
+    # unit, each held within position_sigma; three or more not on one line fix the gauge and the scale.
+    positions: tuple[np.ndarray, np.ndarray] | None = None
+    position_sigma: float = 0.002
 
 
 @dataclass
@@ -219,7 +224,20 @@ def _validate(problem: WindowProblem) -> tuple[np.ndarray, ...]:
             raise fail(f"scale_pair must name two keyframe rows in 0..{len(poses) - 1}, got {problem.scale_pair}")
         if np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]) <= 0:
             raise fail("scale_pair names two keyframes at one position: no scale to hold")
-    if fixed.sum() < (1 if problem.scale_pair is not None else 2):
+    position_rows = np.zeros(0, dtype=np.int64)
+    if problem.positions is not None:
+        position_rows = np.asarray(problem.positions[0])
+        measured = np.asarray(problem.positions[1], dtype=np.float64)
+        if (position_rows.ndim != 1 or measured.shape != (len(position_rows), 3) or len(position_rows) == 0
+                or position_rows.dtype.kind not in "iu"):
+            raise fail(f"positions must be (rows (P,) ints, (P, 3)), got {position_rows.shape} and {measured.shape}")
+        if position_rows.min() < 0 or position_rows.max() >= len(poses) or not np.isfinite(measured).all():
+            raise fail(f"positions must name keyframe rows in 0..{len(poses) - 1} with finite values")
+        if not problem.position_sigma > 0:
+            raise fail(f"position_sigma must be positive, got {problem.position_sigma}")
+    if len(np.unique(position_rows)) >= 3:
+        pass  # measured positions fix the gauge and the scale
+    elif fixed.sum() < (1 if problem.scale_pair is not None else 2):
         raise fail("a monocular window needs two fixed poses, or one and a scale_pair (gauge and scale), "
                    f"got {int(fixed.sum())}")
     points = np.asarray(problem.points, dtype=np.float64)
@@ -380,6 +398,10 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
         i, j = (int(r) for r in problem.scale_pair)
         distance = float(np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]))
         graph.add(gtsam.RangeFactorPose3(X(i), X(j), distance, gtsam.noiseModel.Isotropic.Sigma(1, _SCALE_SIGMA * distance)))
+    if problem.positions is not None:
+        position_noise = gtsam.noiseModel.Isotropic.Sigma(3, float(problem.position_sigma))
+        for row, position in zip(np.asarray(problem.positions[0]).tolist(), np.asarray(problem.positions[1], dtype=np.float64)):
+            graph.add(gtsam.GPSFactor(X(int(row)), position, position_noise))
 
     parameters = gtsam.LevenbergMarquardtParams.CeresDefaults()
     parameters.setMaxIterations(int(problem.max_iterations))

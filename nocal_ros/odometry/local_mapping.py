@@ -274,7 +274,8 @@ class LocalMapping:
             return "intrinsics"
         return "focal" if keyframes >= focal else "fixed"
 
-    def bundle_adjust(self, local_map: LocalMap, initialise: bool = False, whole_map: bool = False) -> None:
+    def bundle_adjust(self, local_map: LocalMap, initialise: bool = False, whole_map: bool = False,
+                      positions: dict[int, np.ndarray] | None = None) -> None:
         """Windowed bundle adjustment over keyframes, landmarks and the camera (see the module notes).
 
         ``initialise``: a camera initialisation instead: every keyframe of the map (up to
@@ -288,7 +289,9 @@ class LocalMapping:
 
         ``whole_map`` (with ``initialise``): the initialisation's solve over every keyframe of the map (the
         end of a replay: :mod:`nocal_ros.odometry.trajectory`), without hypotheses or covariance (the
-        camera keeps the last one); a camera never initialised stays as it is.
+        camera keeps the last one); a camera never initialised stays as it is. ``positions``: measured
+        camera positions of keyframes (``{keyframe index: position}``, an arm's, in the map's frame and
+        unit), three or more: they hold the map's gauge and scale instead of its first keyframe.
         """
         from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem, calibration_from_parameters
 
@@ -329,7 +332,13 @@ class LocalMapping:
         # held (the scale). The rest, the relative rotation of those two included, is free: their
         # poses were estimated through an older, worse camera, and fixing both would hold that error.
         fixed = np.zeros(len(window), dtype=bool)
-        fixed[: max(1, held)] = True
+        measured = None
+        if positions and len(positions) >= 3:
+            rows_measured = [row for row, kf in enumerate(window) if kf.index in positions]
+            measured = (np.array(rows_measured, dtype=np.int64), np.array([positions[window[r].index] for r in rows_measured]))
+        if measured is None or len(measured[0]) < 3:
+            measured = None
+            fixed[: max(1, held)] = True
         # A keyframe none of whose observations made it into the window's landmarks cannot be moved.
         fixed |= np.bincount(rows, minlength=len(window)) == 0
         calibration = self.camera.calibration
@@ -340,7 +349,7 @@ class LocalMapping:
             freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
         # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
         # oldest keyframe to a later one is held at its value from the previous windows.
-        scale_pair = None if held >= 2 else (0, min(held + self.settings.scale_baseline, len(window) - 1))
+        scale_pair = None if held >= 2 or measured is not None else (0, min(held + self.settings.scale_baseline, len(window) - 1))
         problem = WindowProblem(
             calibration=calibration, poses=poses, fixed=fixed, points=points, keyframe_index=rows,
             point_index=point_index, pixels=pixels, camera=freedom, camera_prior=prior,
@@ -348,7 +357,7 @@ class LocalMapping:
             relative_tolerance=self.settings.relative_tolerance,
             # A whole map's solve is too poorly conditioned for GTSAM's covariance now and then (the
             # fisheye bag's 66 keyframes, measured), and the end of a replay has no use for it.
-            camera_covariance=not whole_map,
+            camera_covariance=not whole_map, positions=measured,
         )
         # The first initialisation chooses among focal hypotheses (camera_initialisation's notes).
         hypotheses = initialise and self.camera.updates == 0 and not whole_map

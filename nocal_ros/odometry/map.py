@@ -56,6 +56,8 @@ class LocalMap:
     lock: threading.RLock = field(default_factory=threading.RLock)
     #: Counts the bundle adjustments applied: tracking re-poses its previous frame when it changed.
     version: int = 0
+    #: The map's unit now in units of the map as it was made (:meth:`transform` changes it).
+    unit_scale: float = 1.0
 
     def landmark_positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(mask (N,), positions (M, 3))`` of the ids that have a landmark."""
@@ -75,6 +77,19 @@ class LocalMap:
     def window(self, size: int) -> list[Keyframe]:
         with self.lock:
             return list(self.keyframes[-size:])
+
+    def transform(self, scale: float, R: np.ndarray, t: np.ndarray) -> None:
+        """Move the whole map by the similarity ``x -> scale R x + t`` (keyframes and landmarks)."""
+        with self.lock:
+            for keyframe in self.keyframes:
+                T = np.eye(4)
+                T[:3, :3] = R @ keyframe.T_w_c[:3, :3]
+                T[:3, 3] = scale * R @ keyframe.T_w_c[:3, 3] + t
+                keyframe.T_w_c = T
+            for landmark_id, point in self.landmarks.items():
+                self.landmarks[landmark_id] = scale * R @ point + t
+            self.unit_scale *= scale
+            self.version += 1
 
     def remove_observations(self, keyframe: Keyframe, ids: np.ndarray) -> None:
         """Drop some observations from a keyframe (outliers found by bundle adjustment)."""

@@ -346,7 +346,7 @@ class VisualOdometry:
                 tracks: TrackedFrame) -> None:
         if self.record:
             self.records.append(FrameRecord(frame, self.map_id, local_map, reference, T_kf_cam.copy(),
-                                            tracks.ids.copy(), tracks.pixels.copy()))
+                                            tracks.ids.copy(), tracks.pixels.copy(), local_map.unit_scale))
 
     def _is_keyframe(self, frame: int, tracked: TrackedFrame, inliers: int, T_w_c: np.ndarray) -> bool:
         settings = self.settings

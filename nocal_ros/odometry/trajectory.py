@@ -35,6 +35,7 @@ class FrameRecord:
         T_kf_cam: ``(4, 4)`` its pose relative to ``reference`` when tracked (while initialising, the
             rotation from the reference, with no translation).
         ids, pixels: its tracks, ``(N,)`` and ``(N, 2)`` native pixels.
+        unit_scale: the map's ``unit_scale`` then (``T_kf_cam``'s unit).
     """
 
     frame: int
@@ -44,6 +45,7 @@ class FrameRecord:
     T_kf_cam: np.ndarray
     ids: np.ndarray
     pixels: np.ndarray
+    unit_scale: float = 1.0
 
 
 @dataclass
@@ -73,7 +75,9 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
                 poses[record.frame] = FinalPose(record.map_id, record.local_map, T_w_ref, "keyframe")
                 continue
             mask, positions = record.local_map.landmark_positions(record.ids)
-        guess = T_w_ref @ record.T_kf_cam
+        T_kf_cam = record.T_kf_cam.copy()
+        T_kf_cam[:3, 3] *= record.local_map.unit_scale / record.unit_scale  # the map moved into other units since
+        guess = T_w_ref @ T_kf_cam
         x = calibration.undistorted_normalised(record.pixels[mask])
         pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers)
         if pnp is None:
