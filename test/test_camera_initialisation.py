@@ -68,6 +68,28 @@ def test_initialisation_from_the_f_equals_width_guess_finds_the_focal_length(see
     assert abs(solution.calibration.D[0] - camera.D[0]) < 0.05
 
 
+def test_a_map_posed_through_a_wrong_camera_is_rebuilt_through_the_given_one():
+    """The end of a replay's solve: the map as tracked through f = width (23 % long) against the same
+    map rebuilt through the converged camera; the rebuild reprojects better (measured: 0.2033 against
+    0.2064 px^2) and is chosen."""
+    camera, poses, points, keyframe_index, point_index, pixels = noisy_window(4)
+    guess = prior_calibration(camera.width, camera.height)
+    rebuilt_poses, rebuilt_points, _ = rebuild(problem_through(guess, poses, points, keyframe_index, point_index, pixels), guess)
+    known = np.isfinite(rebuilt_points).all(1)
+    renumber = np.cumsum(known) - 1
+    used = known[point_index]
+    # The camera has converged meanwhile, but the map is still the one posed through the guess.
+    problem = problem_through(camera, rebuilt_poses, rebuilt_points[known], keyframe_index[used],
+                              renumber[point_index[used]], pixels[used])
+    solution, report = initialise_camera(problem, focal_shares=(), starts=(camera,))
+    assert len(report) == 2 and report[0][0] == report[1][0] == camera.fx
+    plain_score, rebuilt_score = report[0][2], report[1][2]
+    assert rebuilt_score <= plain_score
+    assert solution.calibration.fx == pytest.approx(report[1][1])
+    relative = np.linalg.inv(poses[0]) @ poses
+    assert rotation_errors_deg(solution.poses[:, :3, :3], relative[:, :3, :3]).max() < 0.3
+
+
 def test_initialisation_schedule_and_the_uncalibrated_camera_waits_for_it():
     camera = OnlineCamera(prior_calibration(160, 120), "guess")
     mapping = LocalMapping(camera, MappingSettings(camera_initialisation=(6, 10), camera_refinement_interval=20),

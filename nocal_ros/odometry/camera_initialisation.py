@@ -13,7 +13,9 @@ furthest, PnP on rays for the others, triangulation), bundle-adjusts each with t
 principal point and lens free, and keeps the one whose every observation, re-triangulated through the
 solved camera and poses, reprojects best (a truncated quadratic, so no hypothesis gains from the
 observations it failed to rebuild). The map as tracking built it, solved the same way, is one of the
-candidates: the result is never worse by that score than the plain solve.
+candidates: the result is never worse by that score than the plain solve. At the end of a replay the
+same choice, between the plain solve of a whole map and its rebuild through the converged camera
+(``starts``), takes the frames tracked through an early wrong camera out of their basin.
 """
 
 from __future__ import annotations
@@ -141,11 +143,13 @@ def _in_frame_of(problem: WindowProblem, poses: np.ndarray, points: np.ndarray, 
     return moved, moved_points
 
 
-def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = FOCAL_HYPOTHESES
-                      ) -> tuple[WindowSolution, list[tuple[float, float, float]]]:
+def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = FOCAL_HYPOTHESES,
+                      starts: tuple[CameraCalibration, ...] = ()) -> tuple[WindowSolution, list[tuple[float, float, float]]]:
     """The best of the plain solve of ``problem`` and a rebuild-and-solve per focal hypothesis.
 
     ``problem``: every keyframe of the map with keyframe 0 fixed and a ``scale_pair``, the camera free.
+    ``starts``: cameras to rebuild through besides the hypotheses' (the end of a replay rebuilds its map
+    through the converged camera alone, ``focal_shares=()``).
     Returns the chosen solution (its ``points`` NaN and its ``inliers`` False where a rebuild left a
     landmark out) and ``(start focal, solved focal, score)`` per candidate, the plain solve first.
     """
@@ -153,39 +157,46 @@ def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = 
     report = [(problem.calibration.fx, plain.calibration.fx, reprojection_score(problem, plain) if plain.success else np.inf)]
     scored = [(report[0][2], plain)] if plain.success else []
     like = problem.calibration
-    for share in focal_shares:
-        start = CameraCalibration.pinhole(like.width, like.height, share * like.width, D=np.zeros_like(like.D),
-                                          distortion_model=like.distortion_model, camera_name=like.camera_name)
-        rebuilt = rebuild(problem, start)
-        if rebuilt is None:
+    hypotheses = [CameraCalibration.pinhole(like.width, like.height, share * like.width, D=np.zeros_like(like.D),
+                                            distortion_model=like.distortion_model, camera_name=like.camera_name)
+                  for share in focal_shares]
+    for start in (*hypotheses, *starts):
+        solution = _rebuilt_solution(problem, start)
+        if solution is None:
             report.append((start.fx, np.nan, np.inf))
             continue
-        poses, points, j = rebuilt
-        poses, points = _in_frame_of(problem, poses, points, j)
-        known = np.isfinite(points).all(1)
-        index = np.full(len(points), -1)
-        index[known] = np.arange(known.sum())
-        used = known[problem.point_index]
-        subproblem = replace(problem, calibration=start, poses=poses, points=points[known],
-                             keyframe_index=problem.keyframe_index[used], point_index=index[problem.point_index[used]],
-                             pixels=problem.pixels[used])
-        try:
-            solution = bundle_adjust(subproblem)
-        except Exception:  # noqa: BLE001 - a rebuild the solver rejects is a hypothesis that lost
-            report.append((start.fx, np.nan, np.inf))
-            continue
-        if not solution.success:
-            report.append((start.fx, np.nan, np.inf))
-            continue
-        full_points = np.full((len(problem.points), 3), np.nan)
-        full_points[known] = solution.points
-        inliers = np.zeros(len(problem.pixels), dtype=bool)
-        inliers[used] = solution.inliers
-        residuals = np.full(len(problem.pixels), np.inf)
-        residuals[used] = solution.residuals_px
-        solution = replace(solution, points=full_points, inliers=inliers, residuals_px=residuals)
         report.append((start.fx, solution.calibration.fx, reprojection_score(problem, solution)))
         scored.append((report[-1][2], solution))
     if not scored:
         return plain, report
     return min(scored, key=lambda pair: pair[0])[1], report
+
+
+def _rebuilt_solution(problem: WindowProblem, start: CameraCalibration) -> WindowSolution | None:
+    """The map of ``problem`` rebuilt through ``start`` and solved, in the problem's frame and rows
+    (landmarks the rebuild left out: NaN, and their observations not inliers); None when it failed."""
+    rebuilt = rebuild(problem, start)
+    if rebuilt is None:
+        return None
+    poses, points, j = rebuilt
+    poses, points = _in_frame_of(problem, poses, points, j)
+    known = np.isfinite(points).all(1)
+    index = np.full(len(points), -1)
+    index[known] = np.arange(known.sum())
+    used = known[problem.point_index]
+    subproblem = replace(problem, calibration=start, poses=poses, points=points[known],
+                         keyframe_index=problem.keyframe_index[used], point_index=index[problem.point_index[used]],
+                         pixels=problem.pixels[used])
+    try:
+        solution = bundle_adjust(subproblem)
+    except Exception:  # noqa: BLE001 - a rebuild the solver rejects is a hypothesis that lost
+        return None
+    if not solution.success:
+        return None
+    full_points = np.full((len(problem.points), 3), np.nan)
+    full_points[known] = solution.points
+    inliers = np.zeros(len(problem.pixels), dtype=bool)
+    inliers[used] = solution.inliers
+    residuals = np.full(len(problem.pixels), np.inf)
+    residuals[used] = solution.residuals_px
+    return replace(solution, points=full_points, inliers=inliers, residuals_px=residuals)
