@@ -141,3 +141,31 @@ def test_rpe_after_a_frame_reads_exact_stamps_and_scores_only_the_later_pairs(tm
     assert rpe_after.main([str(bag), str(tmp_path / "trajectory.tum"), "--from-frame", "3"]) == 0
     # pair 3-4 alone is off by 1 deg: RMSE over 8 pairs 1 / sqrt(8)
     assert "RPE rotation RMSE 0.354 deg" in capsys.readouterr().out
+
+
+def test_pose_head_lengths_against_a_pose_head_that_measures_twice_the_length(tmp_path, capsys):
+    """A pose function that returns twice the true translation for any pair: the ratio is 2 at every
+    gap (the closed form), and the command prints one line per bag."""
+    import torch
+
+    from nocal_ros.odometry.pose_head import PoseModel
+
+    frames = 12
+    poses = np.stack([make_transform(np.eye(3), [0.03 * k, 0.01 * k * k, 0.0]) for k in range(frames)])
+    images = np.stack([np.full((24, 32, 3), 10 * k, dtype=np.uint8) for k in range(frames)])
+    stamps = np.arange(frames, dtype=np.int64) * 100_000_000
+    bag = write_sequence(FrameSequence(images, stamps, np.full_like(poses, np.nan), ground_truth=poses), tmp_path / "bag")
+
+    def twice(image_i, image_j):  # each frame's index is its grey level / 10
+        i, j = (int(round(float(image.mean()) * 255 / 10)) for image in (image_i, image_j))
+        T = np.linalg.inv(poses[i]) @ poses[j]
+        T[:3, 3] *= 2.0
+        return torch.as_tensor(T, dtype=torch.float32)[None]
+
+    script = load_script("pose_head_lengths")
+    ratios = script.length_ratios(bag, [1, 2, 4], PoseModel(predict_pose=twice, input_size=(32, 24), max_gap=4))
+    assert sorted(ratios) == [1, 2, 4] and [len(ratios[g]) for g in (1, 2, 4)] == [frames - 1, frames - 2, frames - 4]
+    for gap in (1, 2, 4):
+        np.testing.assert_allclose(ratios[gap], 2.0, rtol=1e-5)
+    assert script.main([str(bag), "--gaps", "1", "2"]) == 0  # the shipped model
+    assert capsys.readouterr().out.startswith("bag: pose head length / true length, median: gap 1: ")
