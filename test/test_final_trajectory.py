@@ -83,3 +83,41 @@ def test_a_map_moved_into_other_units_moves_its_frames_with_it():
     expected[:3, :3] = R @ (before @ T_tracked)[:3, :3]
     expected[:3, 3] = 2.5 * R @ (before @ T_tracked)[:3, 3] + t
     np.testing.assert_allclose(moved.T_map_cam, expected, atol=1e-12)
+
+
+def test_a_map_made_after_a_loss_is_placed_in_the_map_before_it_through_their_shared_landmarks():
+    """Two maps of one scene, the second in another frame and unit (a monocular map made after tracking
+    was lost), sharing 40 track ids: map_similarity recovers the similarity between them (closed form),
+    ignoring shared ids whose landmark one map placed badly, and link_maps moves the second map's frames
+    into the first; with too few shared landmarks nothing is linked."""
+    from nocal_ros.odometry.trajectory import FinalPose, link_maps, map_similarity
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform([-2, -1, 3], [2, 1, 7], (60, 3))
+    s, R, t = 0.4, cv2.Rodrigues(np.array([0.1, -0.4, 0.2]))[0], np.array([0.5, 0.1, -1.0])
+    older, newer = LocalMap(), LocalMap()
+    for landmark_id in range(0, 50):
+        older.landmarks[landmark_id] = points[landmark_id]
+    for landmark_id in range(10, 60):  # ids 10..49 in both; x_older = s R x_newer + t
+        newer.landmarks[landmark_id] = R.T @ (points[landmark_id] - t) / s
+    newer.landmarks[12] = newer.landmarks[12] + 3.0  # one badly placed landmark
+    found = map_similarity(older, newer)
+    assert found is not None
+    np.testing.assert_allclose(found[0], s, rtol=1e-9)
+    np.testing.assert_allclose(found[1], R, atol=1e-9)
+    np.testing.assert_allclose(found[2], t, atol=1e-9)
+
+    older.add_keyframe(0, 0, np.eye(4), np.arange(3), np.zeros((3, 2)))
+    newer.add_keyframe(9, 0, np.eye(4), np.arange(3), np.zeros((3, 2)))
+    T_true = pose([0.05, 0.2, 0.0], [0.3, 0.0, 0.2])  # a frame of the second map, in the first map's frame
+    in_newer = np.eye(4)
+    in_newer[:3, :3] = R.T @ T_true[:3, :3]
+    in_newer[:3, 3] = R.T @ (T_true[:3, 3] - t) / s
+    poses = {0: FinalPose(1, older, np.eye(4), "keyframe"), 9: FinalPose(2, newer, in_newer, "pnp")}
+    linked = link_maps(poses)
+    assert linked[9].map_id == 1 and linked[9].how == "pnp"
+    np.testing.assert_allclose(linked[9].T_map_cam, T_true, atol=1e-9)
+    assert link_maps(poses, exclude={2})[9].map_id == 2  # a map made metric by the arm stays in its frame
+    for landmark_id in range(10, 40):
+        del newer.landmarks[landmark_id]  # 10 shared ids left
+    assert map_similarity(older, newer) is None and link_maps(poses)[9].map_id == 2

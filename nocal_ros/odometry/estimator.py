@@ -704,17 +704,20 @@ class OdometryEstimator:
         Needs ``record_trajectory=True``. A frame tracked in a map, or whose tracks made it, is posed in
         it again and placed in ``odom`` by that map's origin and scale (where three or more of its
         keyframes have arm poses, the map is solved with them and is metric; else the last scale
-        published; the map's first frame goes where the frames before it lead); any other frame (lost, or initialising a map never made) keeps
-        its published motion from the frame before it.
+        published; the map's first frame goes where the frames before it lead, unless the map shares
+        landmarks with the map before it: then it is placed in that map,
+        :func:`~nocal_ros.odometry.trajectory.link_maps`); any other frame (lost, or initialising a map
+        never made) keeps its published motion from the frame before it.
         ``how`` says which: ``"keyframe"``, ``"pnp"``, ``"keyframe_relative"`` or ``"published"``.
         """
-        from nocal_ros.odometry.trajectory import final_map_poses
+        from nocal_ros.odometry.trajectory import final_map_poses, link_maps
 
         with self._lock:
             if not self.record_trajectory:
                 raise NocalError("final_trajectory needs an estimator made with record_trajectory=True")
             log_ = list(self._trajectory_log)
             scales = dict(self._map_scales)
+            metric: set[int] = set()
             map_poses = {}
             if self._vo is not None:
                 self._vo.mapping.wait()
@@ -724,11 +727,14 @@ class OdometryEstimator:
                 # each whole map (every keyframe, the camera and lens free from the guess's prior).
                 maps = {r.map_id: r.local_map for r in self._vo.records}
                 for map_id, local_map in maps.items():
-                    metric = self._solve_whole_map(local_map)
-                    if metric is not None:
-                        scales[map_id] = metric
+                    arm_scale = self._solve_whole_map(local_map)
+                    if arm_scale is not None:
+                        scales[map_id] = arm_scale
+                        metric.add(map_id)
                 map_poses = final_map_poses(self._vo.records, self._vo.camera.calibration,
                                             self.settings.pixel_threshold, self.settings.min_pnp_inliers)
+                # A map made after a loss and sharing landmarks with the one before goes into its frame.
+                map_poses = link_maps(map_poses, exclude=metric)
         stamps, poses, how = [], [], []
         origins: dict[int, np.ndarray] = {}  # map id -> T_odom_map
         previous: tuple[np.ndarray, np.ndarray] | None = None  # (published, final) of the frame before

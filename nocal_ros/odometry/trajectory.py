@@ -85,3 +85,71 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
         else:
             poses[record.frame] = FinalPose(record.map_id, record.local_map, pnp.T_w_c, "pnp")
     return poses
+
+
+#: Fewest landmarks two maps must share, and agree on, for one to be placed in the other.
+MIN_SHARED_LANDMARKS = 12
+
+
+def map_similarity(older: LocalMap, newer: LocalMap) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """``(s, R, t)`` with ``x_older = s R x_newer + t``, from the landmarks both maps hold, or None.
+
+    A map started after tracking was lost keeps the tracks that lived through the loss, and a landmark's
+    id is its track's, so the same id in two maps is the same scene point. The fit is repeated on the
+    landmarks within three median residuals of the last one (a landmark badly placed in either map is
+    left out); it needs :data:`MIN_SHARED_LANDMARKS` of them.
+    """
+    from nocal_ros.odometry.scale import umeyama
+
+    with older.lock, newer.lock:
+        common = sorted(set(older.landmarks) & set(newer.landmarks))
+        if len(common) < MIN_SHARED_LANDMARKS:
+            return None
+        in_older = np.array([older.landmarks[i] for i in common])
+        in_newer = np.array([newer.landmarks[i] for i in common])
+    finite = np.isfinite(in_older).all(1) & np.isfinite(in_newer).all(1)
+    keep = finite
+    for _ in range(3):
+        if keep.sum() < MIN_SHARED_LANDMARKS or np.ptp(in_newer[keep], axis=0).max() <= 0:
+            return None
+        s, R, t = umeyama(in_newer[keep], in_older[keep])
+        residual = np.linalg.norm(in_older - (s * in_newer @ R.T + t), axis=1)
+        residual[~finite] = np.inf
+        keep = residual <= 3.0 * max(float(np.median(residual[keep])), 1e-12)
+    if keep.sum() < MIN_SHARED_LANDMARKS or not (np.isfinite(s) and s > 0):
+        return None
+    return s, R, t
+
+
+def link_maps(poses: dict[int, FinalPose], exclude: set[int] = frozenset()) -> dict[int, FinalPose]:
+    """The frames of each map that shares landmarks with the map before it (:func:`map_similarity`) moved
+    into that map's frame and unit, and given its id, so that both are placed by one origin and scale.
+
+    Maps in ``exclude`` (made metric in another frame, the arm's) are neither moved nor moved into.
+    Without this, a map made after a loss is placed where the published frames of the loss lead.
+    """
+    maps: dict[int, LocalMap] = {}
+    for pose in poses.values():
+        maps.setdefault(pose.map_id, pose.local_map)
+    into: dict[int, tuple[int, float, np.ndarray, np.ndarray]] = {}  # map id -> (root id, s, R, t)
+    ids = sorted(maps)
+    for older, newer in zip(ids[:-1], ids[1:]):
+        if older in exclude or newer in exclude:
+            continue
+        similarity = map_similarity(maps[older], maps[newer])
+        if similarity is None:
+            continue
+        s, R, t = similarity
+        root, s0, R0, t0 = into.get(older, (older, 1.0, np.eye(3), np.zeros(3)))
+        into[newer] = (root, s0 * s, R0 @ R, s0 * R0 @ t + t0)
+    linked = {}
+    for frame, pose in poses.items():
+        if pose.map_id not in into:
+            linked[frame] = pose
+            continue
+        root, s, R, t = into[pose.map_id]
+        T = np.eye(4)
+        T[:3, :3] = R @ pose.T_map_cam[:3, :3]
+        T[:3, 3] = s * R @ pose.T_map_cam[:3, 3] + t
+        linked[frame] = FinalPose(root, pose.local_map, T, pose.how)
+    return linked
