@@ -253,3 +253,13 @@ def test_the_final_trajectory_has_the_published_frames_and_its_own_report(moving
     report = json.loads((out / "report.json").read_text())["final_trajectory"]
     assert sum(report["posed"].values()) == len(published)
     assert {"rpe", "ape_sim3", "calibration", "seconds"} <= set(report)
+
+
+def test_no_final_writes_only_what_was_published(moving_bag, tmp_path):
+    import json
+
+    out = tmp_path / "out"
+    assert odometry(moving_bag, out, "--no-final") == 0
+    assert not (out / "trajectory_final.tum").exists() and not (out / "calibration_final.yaml").exists()
+    assert "final_trajectory" not in json.loads((out / "report.json").read_text())
+    assert (out / "trajectory.tum").is_file() and (out / "calibration.yaml").is_file()
