@@ -50,17 +50,23 @@ def test_rebuild_through_the_true_camera_recovers_the_poses_up_to_scale():
     assert np.isfinite(rebuilt_points).all(1).mean() > 0.9
 
 
-@pytest.mark.parametrize("seed", [2, 3])
-def test_initialisation_from_the_f_equals_width_guess_finds_the_focal_length(seed):
+def tracked_through_the_guess(seed: int, solve_through: str = "guess"):
+    """A noisy window's map as tracking would have made it through f = width (640 against 520 true, no
+    lens), as a problem whose camera is the guess or, once it has converged, the true ``"camera"``."""
     camera, poses, points, keyframe_index, point_index, pixels = noisy_window(seed)
-    guess = prior_calibration(camera.width, camera.height)  # f = 640 against 520 true, no lens
-    # The map as tracking would have made it through the guess.
+    guess = prior_calibration(camera.width, camera.height)
     rebuilt_poses, rebuilt_points, _ = rebuild(problem_through(guess, poses, points, keyframe_index, point_index, pixels), guess)
     known = np.isfinite(rebuilt_points).all(1)
     renumber = np.cumsum(known) - 1
     used = known[point_index]
-    problem = problem_through(guess, rebuilt_poses, rebuilt_points[known], keyframe_index[used],
-                              renumber[point_index[used]], pixels[used])
+    problem = problem_through(guess if solve_through == "guess" else camera, rebuilt_poses, rebuilt_points[known],
+                              keyframe_index[used], renumber[point_index[used]], pixels[used])
+    return camera, poses, problem
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_initialisation_from_the_f_equals_width_guess_finds_the_focal_length(seed):
+    camera, _, problem = tracked_through_the_guess(seed)
     solution, report = initialise_camera(problem)
     assert solution.success
     assert len(report) == 1 + len(FOCAL_HYPOTHESES)
@@ -72,15 +78,8 @@ def test_a_map_posed_through_a_wrong_camera_is_rebuilt_through_the_given_one():
     """The end of a replay's solve: the map as tracked through f = width (23 % long) against the same
     map rebuilt through the converged camera; the rebuild reprojects better (measured: 0.2033 against
     0.2064 px^2) and is chosen."""
-    camera, poses, points, keyframe_index, point_index, pixels = noisy_window(4)
-    guess = prior_calibration(camera.width, camera.height)
-    rebuilt_poses, rebuilt_points, _ = rebuild(problem_through(guess, poses, points, keyframe_index, point_index, pixels), guess)
-    known = np.isfinite(rebuilt_points).all(1)
-    renumber = np.cumsum(known) - 1
-    used = known[point_index]
     # The camera has converged meanwhile, but the map is still the one posed through the guess.
-    problem = problem_through(camera, rebuilt_poses, rebuilt_points[known], keyframe_index[used],
-                              renumber[point_index[used]], pixels[used])
+    camera, poses, problem = tracked_through_the_guess(4, solve_through="camera")
     solution, report = initialise_camera(problem, focal_shares=(), starts=(camera,))
     assert len(report) == 2 and report[0][0] == report[1][0] == camera.fx
     plain_score, rebuilt_score = report[0][2], report[1][2]
