@@ -121,3 +121,35 @@ def test_a_map_made_after_a_loss_is_placed_in_the_map_before_it_through_their_sh
     for landmark_id in range(10, 40):
         del newer.landmarks[landmark_id]  # 10 shared ids left
     assert map_similarity(older, newer) is None and link_maps(poses)[9].map_id == 2
+
+
+def test_a_landmark_seen_again_under_a_new_track_is_fused_into_the_old_one():
+    """Landmark 1's track ends at keyframe 1; landmark 7 is the same point (1 mm off) found again at
+    keyframe 2: fused. Landmark 8 projects onto the same pixel there but lies 20 % deeper: kept. Landmark
+    9 is landmark 3's point at keyframe 2 but 5 px off it at keyframe 3 (a mismatch): kept. Pixels are
+    OpenCV's projections through CAMERA."""
+    from nocal_ros.odometry.local_mapping import fuse_landmarks
+
+    poses = [pose([0.0, 0.02 * k, 0.0], [0.1 * k, 0.0, 0.0]) for k in range(4)]
+    P, S = np.array([0.2, -0.1, 4.0]), np.array([-0.6, 0.3, 5.0])
+    centre = poses[2][:3, 3]
+    Q = centre + 1.2 * (P - centre)  # on keyframe 2's ray through P, 20 % deeper
+    points = {1: P, 3: S, 7: P + 0.001, 8: Q, 9: S}
+    seen_by = {1: (0, 1), 3: (0, 1), 7: (2, 3), 8: (2, 3), 9: (2, 3)}
+    local_map = LocalMap()
+    for k, T in enumerate(poses):
+        ids = np.array(sorted(i for i, rows in seen_by.items() if k in rows))
+        pixels = opencv_pixels(T, np.array([points[i] for i in ids]))
+        if k == 3:
+            pixels[list(ids).index(9)] += 5.0
+        local_map.add_keyframe(k, k, T, ids, pixels)
+    local_map.landmarks.update(points)
+
+    merged = fuse_landmarks(local_map, CAMERA, pixel_threshold=1.5)
+
+    assert merged == {7: 1}
+    assert 7 not in local_map.landmarks and {1, 3, 8, 9} <= set(local_map.landmarks)
+    for keyframe in local_map.keyframes[2:]:
+        assert keyframe.ids.tolist() == [1, 8, 9] and (np.diff(keyframe.ids) > 0).all()
+        found, rows = keyframe.lookup(np.array([1]))
+        np.testing.assert_allclose(keyframe.pixels[rows[0]], opencv_pixels(keyframe.T_w_c, (P + 0.001)[None])[0])

@@ -698,8 +698,9 @@ class OdometryEstimator:
         """The frames since the last reset posed through the final map and camera (replays; see
         :mod:`nocal_ros.odometry.trajectory`): ``(stamps (N,), T_odom_cam (N, 4, 4), how (N,))``.
 
-        Call it at the end of a stream: it first solves each map whole, with the camera (which
-        :meth:`camera_info` then reports).
+        Call it at the end of a stream: it first fuses each map's duplicate landmarks
+        (:func:`~nocal_ros.odometry.local_mapping.fuse_landmarks`) and solves it whole, with the camera
+        (which :meth:`camera_info` then reports).
 
         Needs ``record_trajectory=True``. A frame tracked in a map, or whose tracks made it, is posed in
         it again and placed in ``odom`` by that map's origin and scale (where three or more of its
@@ -710,6 +711,7 @@ class OdometryEstimator:
         never made) keeps its published motion from the frame before it.
         ``how`` says which: ``"keyframe"``, ``"pnp"``, ``"keyframe_relative"`` or ``"published"``.
         """
+        from nocal_ros.odometry.local_mapping import fuse_landmarks
         from nocal_ros.odometry.trajectory import final_map_poses, link_maps
 
         with self._lock:
@@ -727,6 +729,11 @@ class OdometryEstimator:
                 # each whole map (every keyframe, the camera and lens free from the guess's prior).
                 maps = {r.map_id: r.local_map for r in self._vo.records}
                 for map_id, local_map in maps.items():
+                    # Landmarks that are one scene point seen again tie the map's stretches together.
+                    merged = fuse_landmarks(local_map, self._vo.camera.calibration, self.settings.pixel_threshold)
+                    for record in self._vo.records:
+                        if merged and record.map_id == map_id:
+                            record.ids = np.array([merged.get(i, i) for i in record.ids.tolist()], dtype=np.int64)
                     arm_scale = self._solve_whole_map(local_map)
                     if arm_scale is not None:
                         scales[map_id] = arm_scale
