@@ -263,3 +263,18 @@ def test_no_final_writes_only_what_was_published(moving_bag, tmp_path):
     assert not (out / "trajectory_final.tum").exists() and not (out / "calibration_final.yaml").exists()
     assert "final_trajectory" not in json.loads((out / "report.json").read_text())
     assert (out / "trajectory.tum").is_file() and (out / "calibration.yaml").is_file()
+
+
+def test_a_failing_final_solve_keeps_the_published_outputs(moving_bag, tmp_path, monkeypatch, caplog):
+    from nocal_ros.odometry import OdometryEstimator
+
+    def broken(self):
+        raise RuntimeError("GTSAM: indeterminate system")
+
+    monkeypatch.setattr(OdometryEstimator, "final_trajectory", broken)
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        assert odometry(moving_bag, out) == 0
+    assert (out / "trajectory.tum").is_file() and (out / "report.json").is_file()
+    assert not (out / "trajectory_final.tum").exists()
+    assert any("end-of-replay solve failed (RuntimeError: GTSAM: indeterminate system)" in r.getMessage() for r in caplog.records)
