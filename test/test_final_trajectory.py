@@ -118,6 +118,10 @@ def test_a_map_made_after_a_loss_is_placed_in_the_map_before_it_through_their_sh
     assert linked[9].map_id == 1 and linked[9].how == "pnp"
     np.testing.assert_allclose(linked[9].T_map_cam, T_true, atol=1e-9)
     assert link_maps(poses, exclude={2})[9].map_id == 2  # a map made metric by the arm stays in its frame
+    # A map distorted by a wrong camera (depths stretched by half) agrees with no similarity: not linked.
+    distorted = LocalMap()
+    distorted.landmarks.update({i: p * np.array([1.0, 1.0, 1.5]) for i, p in newer.landmarks.items()})
+    assert map_similarity(older, distorted) is None
     for landmark_id in range(10, 40):
         del newer.landmarks[landmark_id]  # 10 shared ids left
     assert map_similarity(older, newer) is None and link_maps(poses)[9].map_id == 2
