@@ -90,7 +90,7 @@ from nocal_ros.odometry.calibration import (
 )
 from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
-from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale
+from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale, fit_arm_similarity
 from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFrame
 
 if TYPE_CHECKING:
@@ -795,44 +795,36 @@ class OdometryEstimator:
         """At keyframes, refit the scale to the arm poses of the map's keyframes (see :mod:`~nocal_ros.odometry.scale`)."""
         if not (vo_frame.keyframe and self._arm_stamps and self._vo is not None and self._vo.map is not None):
             return
-        estimate = self._arm_scale(self._vo.map, ARM_FIT_KEYFRAMES)
+        pairs = self._arm_keyframes(self._vo.map)[-ARM_FIT_KEYFRAMES:]
+        estimate = fit_arm_scale(np.array([p for _, p, _ in pairs]), np.array([a for _, _, a in pairs])) if pairs else None
         if estimate is not None:
             self._scale = estimate
 
-    def _arm_scale(self, local_map: "LocalMap", newest: int) -> ScaleEstimate | None:
-        """The similarity fit of the ``newest`` of the map's keyframes with arm poses to the arm's
-        positions at their stamps; None until possible."""
+    def _arm_keyframes(self, local_map: "LocalMap") -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """``(keyframe index, map position, arm position)`` of the map's keyframes with an arm pose, oldest first."""
         with local_map.lock:
-            keyframes = [(kf.stamp_ns, kf.T_w_c[:3, 3].copy()) for kf in local_map.keyframes]
-        pairs = [(p, self._arm_position(stamp)) for stamp, p in keyframes]
-        pairs = [(p, a) for p, a in pairs if a is not None][-newest:]
-        if not pairs:
-            return None
-        return fit_arm_scale(np.array([p for p, _ in pairs]), np.array([a for _, a in pairs]))
+            keyframes = [(kf.index, kf.stamp_ns, kf.T_w_c[:3, 3].copy()) for kf in local_map.keyframes]
+        pairs = [(index, position, self._arm_position(stamp)) for index, stamp, position in keyframes]
+        return [(index, position, arm) for index, position, arm in pairs if arm is not None]
 
     def _solve_whole_map(self, local_map: "LocalMap") -> float | None:
         """The end of a replay's solve of one map (see :meth:`final_trajectory`); with arm poses at three
         or more of its keyframes, the map is moved into the arm's frame and metres and solved again with
         them as factors, and 1.0 (its scale now) is returned, else None."""
-        from nocal_ros.odometry.scale import MIN_ARM_KEYFRAMES, umeyama
-
         mapping = self._vo.mapping
-        if len(local_map.keyframes) >= 3:
-            mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
-        with local_map.lock:
-            keyframes = [(kf.index, kf.stamp_ns, kf.T_w_c[:3, 3].copy()) for kf in local_map.keyframes]
-        arm = {index: (position, self._arm_position(stamp)) for index, stamp, position in keyframes}
-        arm = {index: pair for index, pair in arm.items() if pair[1] is not None}
-        if len(arm) < MIN_ARM_KEYFRAMES or len(local_map.keyframes) < 3 or fit_arm_scale(
-                np.array([p for p, _ in arm.values()]), np.array([a for _, a in arm.values()])) is None:
+        if len(local_map.keyframes) < 3:
+            return None
+        mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
+        arm = self._arm_keyframes(local_map)
+        similarity = fit_arm_similarity(np.array([p for _, p, _ in arm]), np.array([a for _, _, a in arm])) if arm else None
+        if similarity is None:
             return None
         # A scale fitted to the arm at a few keyframes leaves the map's own drift between them (measured
         # on heldout_160, arm poses on 10 % of frames: path length 0.85-1.16 of the truth per stretch):
         # as factors of the whole map's solve, the arm's positions take the drift out.
-        scale, R, t = umeyama(np.array([p for p, _ in arm.values()]), np.array([a for _, a in arm.values()]))
-        local_map.transform(scale, R, t)
+        local_map.transform(*similarity)
         mapping.bundle_adjust(local_map, initialise=True, whole_map=True,
-                              positions={index: a for index, (_, a) in arm.items()})
+                              positions={index: a for index, _, a in arm})
         return 1.0
 
     def _start_chain(self, stamp_ns: int, status: str) -> OdometryResult:

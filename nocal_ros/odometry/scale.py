@@ -63,15 +63,24 @@ class ScaleEstimate:
     samples: int = 0
 
 
-def fit_arm_scale(map_positions: np.ndarray, arm_positions: np.ndarray) -> ScaleEstimate | None:
-    """Similarity fit of the arm's camera positions to the map's (``(N, 3)`` each); None until possible."""
+def fit_arm_similarity(map_positions: np.ndarray, arm_positions: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """``(s, R, t)`` with ``arm ~ s R map + t``, fitted to the camera positions (``(N, 3)`` each); None
+    until possible (fewer than :data:`MIN_ARM_KEYFRAMES`, all at one point, or no positive scale)."""
     map_positions = np.asarray(map_positions, dtype=np.float64).reshape(-1, 3)
     arm_positions = np.asarray(arm_positions, dtype=np.float64).reshape(-1, 3)
     if len(map_positions) < MIN_ARM_KEYFRAMES:
         return None
     if np.linalg.norm(map_positions - map_positions.mean(0), axis=1).max() <= 1e-9:
         return None
-    s, _, _ = umeyama(map_positions, arm_positions)
+    s, R, t = umeyama(map_positions, arm_positions)
     if not np.isfinite(s) or s <= 0:
         return None
-    return ScaleEstimate(s, "arm", len(map_positions))
+    return s, R, t
+
+
+def fit_arm_scale(map_positions: np.ndarray, arm_positions: np.ndarray) -> ScaleEstimate | None:
+    """Similarity fit of the arm's camera positions to the map's (``(N, 3)`` each); None until possible."""
+    similarity = fit_arm_similarity(map_positions, arm_positions)
+    if similarity is None:
+        return None
+    return ScaleEstimate(similarity[0], "arm", len(np.asarray(map_positions).reshape(-1, 3)))
