@@ -157,3 +157,65 @@ def test_a_landmark_seen_again_under_a_new_track_is_fused_into_the_old_one():
         assert keyframe.ids.tolist() == [1, 8, 9] and (np.diff(keyframe.ids) > 0).all()
         found, rows = keyframe.lookup(np.array([1]))
         np.testing.assert_allclose(keyframe.pixels[rows[0]], opencv_pixels(keyframe.T_w_c, (P + 0.001)[None])[0])
+
+
+def plane_image(T_w_c: np.ndarray, K: np.ndarray, size: tuple[int, int], texture: np.ndarray, depth: float,
+                texel_m: float) -> np.ndarray:
+    """A pinhole camera's grey image of the textured plane z = ``depth`` (exact ray casting, bilinear)."""
+    width, height = size
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays = np.stack(((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)), -1) @ T_w_c[:3, :3].T
+    along = (depth - T_w_c[2, 3]) / rays[..., 2]
+    x = T_w_c[0, 3] + along * rays[..., 0]
+    y = T_w_c[1, 3] + along * rays[..., 1]
+    centre = (np.array(texture.shape[::-1]) - 1) / 2.0
+    map_x = (x / texel_m + centre[0]).astype(np.float32)
+    map_y = (y / texel_m + centre[1]).astype(np.float32)
+    return cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR)
+
+
+def test_search_by_projection_finds_the_landmarks_a_keyframe_never_tracked_where_they_are():
+    """Keyframe 0 observes corners of a textured plane; keyframes 1 and 2 (moved 8 and 15 cm, turned)
+    observed none of them. Searched for by projection, they are found in both within 0.1 px of their
+    true pixels (the exact projection of the plane point), at the tracker's work size or half of it; a
+    landmark whose position is 5 cm off (its projection 15 px from its texture) is not added anywhere."""
+    from nocal_ros.odometry.local_mapping import search_by_projection
+
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur((rng.random((1200, 1200)) * 255).astype(np.float32), (0, 0), 2.0)
+    K = np.array([[300.0, 0, 160.0], [0, 300.0, 120.0], [0, 0, 1]])
+    camera = CameraCalibration(320, 240, K, np.zeros(5), "plumb_bob", "test")
+    depth, texel = 1.5, 0.002
+    poses = [np.eye(4), pose([0.0, 0.03, 0.01], [0.08, 0.02, 0.0]), pose([0.02, -0.04, 0.0], [-0.12, 0.09, 0.05])]
+    native = [plane_image(T, K, (320, 240), texture, depth, texel) for T in poses]
+    corners = cv2.goodFeaturesToTrack(native[0].astype(np.uint8), 80, 0.01, 12).reshape(-1, 2).astype(np.float64)
+    points = np.column_stack(((corners - K[:2, 2]) / K[0, 0] * depth, np.full(len(corners), depth)))
+    decoy = len(points)
+    points = np.vstack((points, points[5] + [0.05, 0.0, 0.0]))
+    pixels0 = np.vstack((corners, corners[5]))
+    for scale in (1, 2):
+        local_map = LocalMap()
+        local_map.add_keyframe(0, 0, poses[0], np.arange(len(points)), pixels0)
+        for k in (1, 2):
+            local_map.add_keyframe(k, k, poses[k], np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        local_map.landmarks.update(dict(enumerate(points)))
+        images = {k: cv2.resize(image, (320 // scale, 240 // scale), interpolation=cv2.INTER_AREA).astype(np.uint8)
+                  for k, image in enumerate(native)}
+
+        added = search_by_projection(local_map, camera, images, pixel_threshold=1.5, work_scale=(scale, scale))
+
+        assert added == sum(len(kf.ids) for kf in local_map.keyframes[1:])
+        for keyframe in local_map.keyframes[1:]:
+            truth = opencv_pixels_pinhole(keyframe.T_w_c, points[keyframe.ids], K)
+            visible = ((opencv_pixels_pinhole(keyframe.T_w_c, points[:decoy], K) > 10)
+                       & (opencv_pixels_pinhole(keyframe.T_w_c, points[:decoy], K) < [310, 230])).all(1).sum()
+            assert decoy not in keyframe.ids.tolist()
+            assert len(keyframe.ids) >= 0.8 * visible and (np.diff(keyframe.ids) > 0).all()
+            errors = np.linalg.norm(keyframe.pixels - truth, axis=1)
+            assert np.median(errors) < 0.1 * scale and errors.max() < 1.5
+
+
+def opencv_pixels_pinhole(T_w_c: np.ndarray, points_w: np.ndarray, K: np.ndarray) -> np.ndarray:
+    T_c_w = invert_transform(T_w_c)
+    pixels, _ = cv2.projectPoints(points_w, cv2.Rodrigues(T_c_w[:3, :3])[0], T_c_w[:3, 3], K, np.zeros(5))
+    return pixels.reshape(-1, 2)

@@ -437,8 +437,9 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     return replay
 
 
-def _final_trajectory(estimator: Any, stamps_ns: np.ndarray) -> tuple[np.ndarray, list[str], Any, float] | None:
-    """``(T_odom_cam (N, 4, 4), how (N,), calibration, seconds)`` through the final map and camera at
+def _final_trajectory(estimator: Any, stamps_ns: np.ndarray) -> tuple[np.ndarray, list[str], Any, float, int] | None:
+    """``(T_odom_cam (N, 4, 4), how (N,), calibration, seconds, observations found by the search)``
+    through the final map and camera at
     ``stamps_ns``, or None when the estimator does not record them or they do not cover those stamps (a
     restart mid-bag)."""
     if not getattr(estimator, "record_trajectory", False) or getattr(estimator, "method", "vo") != "vo":
@@ -452,7 +453,7 @@ def _final_trajectory(estimator: Any, stamps_ns: np.ndarray) -> tuple[np.ndarray
         return None
     if len(stamps) != len(stamps_ns) or not np.array_equal(stamps, stamps_ns):
         return None
-    return poses, how, estimator.camera_info()[0], time.perf_counter() - start
+    return poses, how, estimator.camera_info()[0], time.perf_counter() - start, estimator.final_observations_found
 
 
 @dataclass
@@ -528,6 +529,7 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
             evaluation.trajectory_errors(final_stamps, final_estimate, final_truth))
         report["final_trajectory"]["posed"] = {how: int(sum(h == how for h in final[1])) for how in sorted(set(final[1]))}
         report["final_trajectory"]["seconds"] = float(final[3])  # the whole-map solves and the frames' PnP
+        report["final_trajectory"]["observations_found"] = int(final[4])  # by searching the keyframes
         if truth.calibration is not None:
             report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
     report["method"] = getattr(estimator, "method", "vo")

@@ -257,6 +257,8 @@ class OdometryEstimator:
         self.record_trajectory = bool(record_trajectory)
         self.settings = settings or TrackingSettings()
         self.counters = OdometryCounters()
+        #: Observations :meth:`final_trajectory` found by searching keyframes for landmarks they never tracked.
+        self.final_observations_found = 0
         self._T_base_cam = np.eye(4) if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
         self._T_cam_base = invert_transform(self._T_base_cam)
         self._given_calibration = calibration
@@ -711,7 +713,7 @@ class OdometryEstimator:
         never made) keeps its published motion from the frame before it.
         ``how`` says which: ``"keyframe"``, ``"pnp"``, ``"keyframe_relative"`` or ``"published"``.
         """
-        from nocal_ros.odometry.local_mapping import fuse_landmarks
+        from nocal_ros.odometry.local_mapping import fuse_landmarks, search_by_projection
         from nocal_ros.odometry.trajectory import final_map_poses, link_maps
 
         with self._lock:
@@ -734,6 +736,12 @@ class OdometryEstimator:
                     for record in self._vo.records:
                         if merged and record.map_id == map_id:
                             record.ids = np.array([merged.get(i, i) for i in record.ids.tolist()], dtype=np.int64)
+                    if self.settings.mapping.search_landmarks and len(local_map.keyframes) >= 3:
+                        # Solved whole first: the landmarks are searched for where that map projects them.
+                        self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
+                        self.final_observations_found += search_by_projection(
+                            local_map, self._vo.camera.calibration, self._vo.keyframe_images,
+                            self.settings.pixel_threshold, self._vo.tracker.work_scale)
                     arm_scale = self._solve_whole_map(local_map)
                     if arm_scale is not None:
                         scales[map_id] = arm_scale

@@ -132,6 +132,16 @@ class FeatureTracker:
         view.flags.writeable = False
         return view
 
+    @property
+    def gray(self) -> np.ndarray | None:
+        """The last frame's grey image at the work size (None before the first frame)."""
+        return self._gray
+
+    @property
+    def work_scale(self) -> tuple[float, float]:
+        """Native pixels per work pixel, along x and y."""
+        return self._scale
+
     def _work_gray(self, image: np.ndarray) -> np.ndarray:
         gray = gray_image(image)
         height, width = gray.shape

@@ -52,6 +52,8 @@ log = logging.getLogger(__name__)
 #: taken: the first keyframes of a narrow camera (46 degrees) chose a focal length 68 % short, at a
 #: standard deviation of 55 %, and the windows that followed built on it (measured).
 INITIALISATION_FOCAL_STD = 0.15
+#: Keyframes each keyframe is searched from at the end of a replay (:func:`search_by_projection`).
+SEARCH_SOURCES = 8
 #: Fewest degrees between the two rays of a new landmark (smaller angles give depth from noise).
 MIN_TRIANGULATION_DEG = 1.0
 
@@ -86,6 +88,8 @@ class MappingSettings:
             this many keyframes (0: never).
         initialisation_keyframes: most keyframes in a camera initialisation.
         bundle_adjustment: run it at all (off: triangulation only, the camera stays as given).
+        search_landmarks: at the end of a replay, search every keyframe for the landmarks it never tracked
+            before the whole map is solved (:func:`search_by_projection`; needs the keyframes' images).
     """
 
     window: int = 10
@@ -98,6 +102,7 @@ class MappingSettings:
     camera_refinement_interval: int = 20
     initialisation_keyframes: int = 40
     bundle_adjustment: bool = True
+    search_landmarks: bool = True
 
 
 class LocalMapping:
@@ -567,3 +572,94 @@ def fuse_landmarks(local_map: LocalMap, calibration: "CameraCalibration", pixel_
             local_map.landmarks.pop(landmark_id, None)
         local_map.version += 1
     return merged
+
+
+def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", images: dict[int, np.ndarray],
+                         pixel_threshold: float, work_scale: tuple[float, float] = (1.0, 1.0),
+                         max_sources: int = SEARCH_SOURCES) -> int:
+    """Find in each keyframe the map's landmarks it sees but never tracked; returns the observations added.
+
+    Tracks are followed from frame to frame only, so a scene point seen again after its track ended, by
+    keyframes far apart in the stream, is observed by one stretch of keyframes alone; the stretches are
+    tied only through their neighbours, and the map's scale drifts along it (heldout_160, the camera of
+    the end fixed at the truth: path length 0.94 -> 1.04 of the truth from the first to the last sixth).
+    ORB-SLAM searches each keyframe for the local map's points by projection; here each landmark in
+    front of a keyframe and inside its image is projected there, and Lucas-Kanade follows it into the
+    keyframe, seeded at the projection, from a keyframe that observed it (its pixel there;
+    ``images[frame]`` at the tracker's work size, ``work_scale`` native pixels per work pixel). Each call
+    builds both images' pyramids, so the sources are few: greedily, the keyframe that observed the most
+    of the landmarks not yet covered, up to ``max_sources``; of those, each landmark is followed from the
+    one nearest in the stream. An observation is added when the track survives the forward-backward
+    check and lands within ``pixel_threshold`` of the projection (an inlier of the solve that follows).
+    """
+    from nocal_ros.odometry.frontend import WINDOW, track_corners
+
+    scale = np.asarray(work_scale, dtype=np.float64)
+    margin = WINDOW[0] // 2 + 1  # a window that would leave the image is not followed
+
+    def to_work(pixels: np.ndarray) -> np.ndarray:
+        return (pixels + 0.5) / scale - 0.5
+
+    with local_map.lock:
+        keyframes = [keyframe for keyframe in local_map.keyframes if keyframe.frame in images]
+        ids = np.array(sorted(local_map.landmarks), dtype=np.int64)
+        if len(ids) == 0 or len(keyframes) < 2:
+            return 0
+        points = np.array([local_map.landmarks[int(i)] for i in ids])
+        # observed[q, r]: keyframe r observed landmark q, at pixel_rows[q, r] of its pixels.
+        observed = np.zeros((len(ids), len(keyframes)), dtype=bool)
+        pixel_rows = np.zeros((len(ids), len(keyframes)), dtype=np.int64)
+        for r, keyframe in enumerate(keyframes):
+            found, rows = keyframe.lookup(ids)
+            observed[found, r] = True
+            pixel_rows[found, r] = rows
+        stream = np.arange(len(keyframes))
+        found_ids: list[np.ndarray] = []
+        found_pixels: list[np.ndarray] = []
+        for r, keyframe in enumerate(keyframes):
+            image = images[keyframe.frame]
+            height, width = image.shape[:2]
+            T = keyframe.T_w_c
+            in_camera = (points - T[:3, 3]) @ T[:3, :3]
+            wanted = np.flatnonzero((in_camera[:, 2] > 0) & ~observed[:, r] & observed.any(1))
+            projected = np.full((len(wanted), 2), np.nan)
+            if len(wanted):
+                projected = calibration.project(in_camera[wanted])
+            work = to_work(projected)
+            inside = (np.isfinite(work).all(1) & (work[:, 0] >= margin) & (work[:, 1] >= margin)
+                      & (work[:, 0] <= width - 1 - margin) & (work[:, 1] <= height - 1 - margin))
+            wanted, projected, work = wanted[inside], projected[inside], work[inside]
+            # Each landmark from the keyframe that observed it nearest in the stream (the most alike
+            # view); each Lucas-Kanade call builds both images' pyramids whatever the number of points,
+            # so only the max_sources keyframes with the most landmarks are sources, and a landmark whose
+            # nearest observer is not one of them is followed from the nearest that is.
+            far = np.iinfo(np.int64).max
+            distance = np.where(observed[wanted], np.abs(stream - r)[None], far)
+            nearest = np.argmin(distance, 1)
+            chosen = np.argsort(-np.bincount(nearest, minlength=len(keyframes)), kind="stable")[:max_sources]
+            distance = distance[:, chosen]
+            source = np.where(distance.min(1) < far, chosen[np.argmin(distance, 1)], -1) if len(wanted) else np.zeros(0, int)
+            sources = chosen.tolist()
+            new_ids, new_pixels = [], []
+            for s in sources:
+                rows = np.flatnonzero(source == s)
+                if len(rows) == 0:
+                    continue
+                start = to_work(keyframes[s].pixels[pixel_rows[wanted[rows], s]])
+                _, moved, kept = track_corners(images[keyframes[s].frame], image, start, work[rows])
+                landed = (moved + 0.5) * scale - 0.5
+                close = np.linalg.norm(landed - projected[rows[kept]], axis=1) < pixel_threshold
+                new_ids.append(ids[wanted[rows[kept[close]]]])
+                new_pixels.append(landed[close])
+            found_ids.append(np.concatenate(new_ids) if new_ids else np.zeros(0, dtype=np.int64))
+            found_pixels.append(np.concatenate(new_pixels) if new_pixels else np.zeros((0, 2)))
+        added = 0
+        for keyframe, new_ids, new_pixels in zip(keyframes, found_ids, found_pixels):
+            if len(new_ids):
+                all_ids = np.concatenate((keyframe.ids, new_ids))
+                order = np.argsort(all_ids, kind="stable")
+                keyframe.ids, keyframe.pixels = all_ids[order], np.concatenate((keyframe.pixels, new_pixels))[order]
+                added += len(new_ids)
+        if added:
+            local_map.version += 1
+    return added

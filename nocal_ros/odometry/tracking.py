@@ -109,7 +109,9 @@ class VisualOdometry:
     """Frames in, poses in the local map out (see the module notes). Not thread-safe: one caller.
 
     ``record``: keep every tracked frame's tracks in :attr:`records`, to pose them again through the
-    final map and camera (:mod:`nocal_ros.odometry.trajectory`; replays only, as they grow with the stream).
+    final map and camera (:mod:`nocal_ros.odometry.trajectory`; replays only, as they grow with the stream),
+    and each keyframe's grey image at the tracker's work size in :attr:`keyframe_images` (by frame), to
+    search it for the landmarks it never tracked (:func:`~nocal_ros.odometry.local_mapping.search_by_projection`).
     """
 
     def __init__(self, camera: OnlineCamera, settings: TrackingSettings | None = None, synchronous: bool = False,
@@ -133,6 +135,8 @@ class VisualOdometry:
         self._mapping_inline_s = 0.0
         self.record = record
         self.records: list[FrameRecord] = []
+        self.keyframe_images: dict[int, np.ndarray] = {}
+        self._reference_image: np.ndarray | None = None  # the initialisation reference's, when recording
         self._rays_cache: tuple | None = None  # (keyframe, calibration, its pixels, their rays)
         self._initialising: list[tuple[int, np.ndarray, TrackedFrame]] = []  # (frame, R_ref_cur, tracks) since the reference
 
@@ -140,6 +144,7 @@ class VisualOdometry:
         self.mapping.wait()
         self.tracker.reset()
         self.records.clear()
+        self.keyframe_images.clear()
         self.map = None
         self.state = "initialising"
         self._reference = None
@@ -198,6 +203,8 @@ class VisualOdometry:
         self.tracker.top_up()
         current = self.tracker.current()
         self._reference = (frame, stamp_ns, current)
+        if self.record:
+            self._reference_image = self.tracker.gray
         self._chain = (current, np.eye(3))
         self._initialising.clear()
 
@@ -271,6 +278,9 @@ class VisualOdometry:
         self._last = (keyframe, np.eye(4))
         self._previous = None
         first = local_map.keyframes[0]
+        if self.record:
+            self.keyframe_images[first.frame] = self._reference_image
+            self.keyframe_images[frame] = self.tracker.gray
         self._record(first.frame, local_map, first, np.eye(4), reference)
         for between, rotation, tracks in self._initialising[:-1]:  # the last one is this frame
             T_ref_between = np.eye(4)
@@ -335,6 +345,8 @@ class VisualOdometry:
             new_keyframe = self.map.add_keyframe(frame, stamp_ns, T, current.ids, current.pixels)
             self._last = (new_keyframe, np.eye(4))  # before mapping moves it
             self._last_keyframe_inliers = inliers
+            if self.record:
+                self.keyframe_images[frame] = self.tracker.gray
             self._record(frame, self.map, new_keyframe, np.eye(4), current)
             self._submit(self.map, new_keyframe)
         else:
