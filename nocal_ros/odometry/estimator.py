@@ -701,8 +701,11 @@ class OdometryEstimator:
         :mod:`nocal_ros.odometry.trajectory`): ``(stamps (N,), T_odom_cam (N, 4, 4), how (N,))``.
 
         Call it at the end of a stream: it first fuses each map's duplicate landmarks
-        (:func:`~nocal_ros.odometry.local_mapping.fuse_landmarks`) and solves it whole, with the camera
-        (which :meth:`camera_info` then reports).
+        (:func:`~nocal_ros.odometry.local_mapping.fuse_landmarks`), solves it whole, searches every
+        keyframe for the landmarks it never tracked
+        (:func:`~nocal_ros.odometry.local_mapping.search_by_projection`, counted in
+        :attr:`final_observations_found`) and solves it whole again, with the camera (which
+        :meth:`camera_info` then reports).
 
         Needs ``record_trajectory=True``. A frame tracked in a map, or whose tracks made it, is posed in
         it again and placed in ``odom`` by that map's origin and scale (where three or more of its

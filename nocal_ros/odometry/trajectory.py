@@ -9,8 +9,9 @@ final camera (the frames tracked through the first guess of an uncalibrated came
 the wrong camera, and their keyframe-relative motions carry that error), and their keyframe-relative
 pose, with the keyframe as it stands, is the fallback and the PnP's start.
 
-The frames' records are kept only when asked for (``VisualOdometry(record=True)``): a live node would
-hold every frame's tracks for as long as it runs.
+The frames' records (and the keyframes' images, which the search for landmarks a keyframe never tracked
+needs) are kept only when asked for (``VisualOdometry(record=True)``): a live node would hold every
+frame's tracks for as long as it runs.
 """
 
 from __future__ import annotations
