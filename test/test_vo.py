@@ -164,6 +164,30 @@ def test_the_final_trajectory_poses_the_frames_again_through_the_converged_camer
         plain.final_trajectory()
 
 
+def test_a_recording_vo_keeps_the_newest_keyframe_images_within_its_budget(sequence):
+    """Each keyframe's grey image is kept while recording (for the end-of-replay search), within the
+    budget: with room for five 160x120 images, the five newest keyframes' are kept, the others let go
+    and counted; without recording, none."""
+    from nocal_ros.odometry.calibration import OnlineCamera
+    from nocal_ros.odometry.tracking import VisualOdometry
+
+    frames = list(zip(sequence.stamps_ns[:60], sequence.images[:60]))
+    unlimited = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True, record=True)
+    budget = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True, record=True,
+                            image_budget_bytes=5 * WIDTH * HEIGHT)
+    plain = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True)
+    for vo in (unlimited, budget, plain):
+        for k, (stamp, image) in enumerate(frames):
+            vo.process(k, int(stamp), image)
+        vo.close()
+    keyframes = [kf.frame for kf in unlimited.records[-1].local_map.keyframes]
+    assert len(keyframes) > 5 and sorted(unlimited.keyframe_images) == keyframes
+    assert all(image.shape == (HEIGHT, WIDTH) and image.dtype == np.uint8 for image in unlimited.keyframe_images.values())
+    assert sorted(budget.keyframe_images) == keyframes[-5:] and budget.keyframe_images_dropped == len(keyframes) - 5
+    np.testing.assert_array_equal(budget.keyframe_images[keyframes[-1]], unlimited.keyframe_images[keyframes[-1]])
+    assert plain.keyframe_images == {}
+
+
 def test_arm_poses_in_the_final_solve_make_the_whole_trajectory_metric(sequence):
     """Arm poses on every 10th frame, the camera from the f = width prior: solved with the arm's
     positions as factors, the final trajectory is metric as it stands (measured: SE(3) APE 0.0071 m

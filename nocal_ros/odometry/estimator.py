@@ -739,6 +739,10 @@ class OdometryEstimator:
                     for record in self._vo.records:
                         if merged and record.map_id == map_id:
                             record.ids = np.array([merged.get(i, i) for i in record.ids.tolist()], dtype=np.int64)
+                    if self.settings.mapping.search_landmarks and self._vo.keyframe_images_dropped and map_id == next(iter(maps)):
+                        log.warning("the end-of-replay search covers the newest %d keyframes only: %d keyframe "
+                                    "images were let go (tracking.KEYFRAME_IMAGE_BUDGET_BYTES)",
+                                    len(self._vo.keyframe_images), self._vo.keyframe_images_dropped)
                     if self.settings.mapping.search_landmarks and len(local_map.keyframes) >= 3:
                         # Solved whole first: the landmarks are searched for where that map projects them.
                         self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True)

@@ -33,6 +33,10 @@ from nocal_ros.odometry.local_mapping import LocalMapping, MappingSettings, refi
 from nocal_ros.odometry.map import Keyframe, LocalMap
 from nocal_ros.odometry.trajectory import FrameRecord
 
+#: Most bytes of keyframe images a recording VO keeps (about 1700 keyframes at 640x480); beyond it the
+#: oldest are let go, and those keyframes are not searched at the end (``keyframe_images_dropped``).
+KEYFRAME_IMAGE_BUDGET_BYTES = 512 * 2**20
+
 
 @dataclass
 class TrackingSettings:
@@ -111,11 +115,12 @@ class VisualOdometry:
     ``record``: keep every tracked frame's tracks in :attr:`records`, to pose them again through the
     final map and camera (:mod:`nocal_ros.odometry.trajectory`; replays only, as they grow with the stream),
     and each keyframe's grey image at the tracker's work size in :attr:`keyframe_images` (by frame), to
-    search it for the landmarks it never tracked (:func:`~nocal_ros.odometry.local_mapping.search_by_projection`).
+    search it for the landmarks it never tracked (:func:`~nocal_ros.odometry.local_mapping.search_by_projection`;
+    at most ``image_budget_bytes`` of them, the newest).
     """
 
     def __init__(self, camera: OnlineCamera, settings: TrackingSettings | None = None, synchronous: bool = False,
-                 record: bool = False) -> None:
+                 record: bool = False, image_budget_bytes: int = KEYFRAME_IMAGE_BUDGET_BYTES) -> None:
         self.camera = camera
         self.settings = settings or TrackingSettings()
         self.tracker = FeatureTracker(self.settings.tracker)
@@ -136,6 +141,9 @@ class VisualOdometry:
         self.record = record
         self.records: list[FrameRecord] = []
         self.keyframe_images: dict[int, np.ndarray] = {}
+        self.keyframe_images_dropped = 0
+        self.image_budget_bytes = int(image_budget_bytes)
+        self._image_bytes = 0
         self._reference_image: np.ndarray | None = None  # the initialisation reference's, when recording
         self._rays_cache: tuple | None = None  # (keyframe, calibration, its pixels, their rays)
         self._initialising: list[tuple[int, np.ndarray, TrackedFrame]] = []  # (frame, R_ref_cur, tracks) since the reference
@@ -145,6 +153,7 @@ class VisualOdometry:
         self.tracker.reset()
         self.records.clear()
         self.keyframe_images.clear()
+        self._image_bytes = 0
         self.map = None
         self.state = "initialising"
         self._reference = None
@@ -278,9 +287,8 @@ class VisualOdometry:
         self._last = (keyframe, np.eye(4))
         self._previous = None
         first = local_map.keyframes[0]
-        if self.record:
-            self.keyframe_images[first.frame] = self._reference_image
-            self.keyframe_images[frame] = self.tracker.gray
+        self._keep_image(first.frame, self._reference_image)
+        self._keep_image(frame, self.tracker.gray)
         self._record(first.frame, local_map, first, np.eye(4), reference)
         for between, rotation, tracks in self._initialising[:-1]:  # the last one is this frame
             T_ref_between = np.eye(4)
@@ -345,8 +353,7 @@ class VisualOdometry:
             new_keyframe = self.map.add_keyframe(frame, stamp_ns, T, current.ids, current.pixels)
             self._last = (new_keyframe, np.eye(4))  # before mapping moves it
             self._last_keyframe_inliers = inliers
-            if self.record:
-                self.keyframe_images[frame] = self.tracker.gray
+            self._keep_image(frame, self.tracker.gray)
             self._record(frame, self.map, new_keyframe, np.eye(4), current)
             self._submit(self.map, new_keyframe)
         else:
@@ -355,6 +362,18 @@ class VisualOdometry:
         return VOFrame("ok", T_map_cam=T.copy(), covariance=pnp.covariance, map_id=self.map_id,
                        reference_frame=self.map.keyframes[0].frame, keyframe=keyframe,
                        tracks=len(tracked.ids), inliers=inliers, T_prev_cur=T_prev_cur)
+
+    def _keep_image(self, frame: int, image: np.ndarray | None) -> None:
+        """Keep a keyframe's image while recording, within the budget (the oldest go first)."""
+        if not self.record or image is None:
+            return
+        previous = self.keyframe_images.pop(frame, None)
+        self._image_bytes += image.nbytes - (0 if previous is None else previous.nbytes)
+        self.keyframe_images[frame] = image
+        while self._image_bytes > self.image_budget_bytes and self.keyframe_images:
+            oldest = next(iter(self.keyframe_images))
+            self._image_bytes -= self.keyframe_images.pop(oldest).nbytes
+            self.keyframe_images_dropped += 1
 
     def _record(self, frame: int, local_map: LocalMap, reference: Keyframe, T_kf_cam: np.ndarray,
                 tracks: TrackedFrame) -> None:
