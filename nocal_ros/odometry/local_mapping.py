@@ -586,11 +586,13 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
     ORB-SLAM searches each keyframe for the local map's points by projection; here each landmark in
     front of a keyframe and inside its image is projected there, and Lucas-Kanade follows it into the
     keyframe, seeded at the projection, from a keyframe that observed it (its pixel there;
-    ``images[frame]`` at the tracker's work size, ``work_scale`` native pixels per work pixel). Each call
-    builds both images' pyramids, so the sources are few: greedily, the keyframe that observed the most
-    of the landmarks not yet covered, up to ``max_sources``; of those, each landmark is followed from the
-    one nearest in the stream. An observation is added when the track survives the forward-backward
-    check and lands within ``pixel_threshold`` of the projection (an inlier of the solve that follows).
+    ``images[frame]`` at the tracker's work size, ``work_scale`` native pixels per work pixel): the one
+    nearest in the stream among the ``max_sources`` keyframes that are the nearest observer of the most
+    landmarks (each call builds both images' pyramids, so the sources are few). An observation is added
+    when the track survives the forward-backward check and lands within ``pixel_threshold`` of the
+    projection (an inlier of the solve that follows). Measured on 16 dev bags, before the whole-map solve
+    at the end of a replay: APE Sim(3) lower on 13 (median 0.0221 -> 0.0150 m), the final focal error on
+    14 (median 0.57 -> 0.34 %).
     """
     from nocal_ros.odometry.frontend import WINDOW, track_corners
 
@@ -631,17 +633,17 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
             wanted, projected, work = wanted[inside], projected[inside], work[inside]
             # Each landmark from the keyframe that observed it nearest in the stream (the most alike
             # view); each Lucas-Kanade call builds both images' pyramids whatever the number of points,
-            # so only the max_sources keyframes with the most landmarks are sources, and a landmark whose
-            # nearest observer is not one of them is followed from the nearest that is.
+            # so only the max_sources keyframes nearest to the most landmarks are sources, and a landmark
+            # whose nearest observer is not one of them is followed from the nearest that is (with all
+            # sources, VAMR's search took 12 657 calls and 15.7 s, and was no more accurate: measured).
             far = np.iinfo(np.int64).max
             distance = np.where(observed[wanted], np.abs(stream - r)[None], far)
             nearest = np.argmin(distance, 1)
             chosen = np.argsort(-np.bincount(nearest, minlength=len(keyframes)), kind="stable")[:max_sources]
             distance = distance[:, chosen]
-            source = np.where(distance.min(1) < far, chosen[np.argmin(distance, 1)], -1) if len(wanted) else np.zeros(0, int)
-            sources = chosen.tolist()
+            source = np.where(distance.min(1) < far, chosen[np.argmin(distance, 1)], -1)
             new_ids, new_pixels = [], []
-            for s in sources:
+            for s in chosen.tolist():
                 rows = np.flatnonzero(source == s)
                 if len(rows) == 0:
                     continue
