@@ -608,14 +608,47 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
         if len(ids) == 0 or len(keyframes) < 2:
             return 0
         points = np.array([local_map.landmarks[int(i)] for i in ids])
-        # observed[q, r]: keyframe r observed landmark q, at pixel_rows[q, r] of its pixels.
-        observed = np.zeros((len(ids), len(keyframes)), dtype=bool)
-        pixel_rows = np.zeros((len(ids), len(keyframes)), dtype=np.int64)
+        count = len(keyframes)
+        # Every observation of a map landmark as a key landmark row * count + keyframe row, sorted, with
+        # its pixel: a sparse table of who observed what (a dense one grows with the product of the two).
+        keys, pixels = [], []
         for r, keyframe in enumerate(keyframes):
-            found, rows = keyframe.lookup(ids)
-            observed[found, r] = True
-            pixel_rows[found, r] = rows
-        stream = np.arange(len(keyframes))
+            rows = np.clip(np.searchsorted(ids, keyframe.ids), 0, len(ids) - 1)
+            known = ids[rows] == keyframe.ids
+            keys.append(rows[known] * count + r)
+            pixels.append(keyframe.pixels[known])
+        keys = np.concatenate(keys)
+        order = np.argsort(keys, kind="stable")
+        keys, pixels = keys[order], np.concatenate(pixels)[order]
+        landmark_of = keys // count
+        observed_any = np.zeros(len(ids), dtype=bool)
+        observed_any[landmark_of] = True
+
+        def observation(landmarks: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            """Index into keys of each (landmark, keyframe row) observation, -1 where there is none."""
+            wanted_keys = landmarks * count + rows
+            at = np.clip(np.searchsorted(keys, wanted_keys), 0, len(keys) - 1)
+            return np.where(keys[at] == wanted_keys, at, -1)
+
+        def nearest_observer(landmarks: np.ndarray, r: int) -> np.ndarray:
+            """Each landmark's observing keyframe row nearest to row ``r`` (it has one)."""
+            at = np.searchsorted(keys, landmarks * count + r)
+            before = np.clip(at - 1, 0, len(keys) - 1)
+            after = np.clip(at, 0, len(keys) - 1)
+            before_ok = (at > 0) & (landmark_of[before] == landmarks)
+            after_ok = (at < len(keys)) & (landmark_of[after] == landmarks)
+            before_row = np.where(before_ok, keys[before] % count, -count)
+            after_row = np.where(after_ok, keys[after] % count, 3 * count)
+            return np.where(r - before_row <= after_row - r, before_row, after_row)
+
+        # A point further from the optical axis than every pixel of the image border is outside it: a
+        # cheap test before the lens's projection of every landmark into every keyframe.
+        u = np.arange(calibration.width, dtype=np.float64)
+        v = np.arange(calibration.height, dtype=np.float64)
+        border = np.concatenate([np.stack((u, np.zeros_like(u)), 1), np.stack((u, np.full_like(u, calibration.height - 1)), 1),
+                                 np.stack((np.zeros_like(v), v), 1), np.stack((np.full_like(v, calibration.width - 1), v), 1)])
+        border_xy = calibration.undistorted_normalised(border)
+        widest = 1.05 * np.linalg.norm(border_xy, axis=1).max() if np.isfinite(border_xy).all() else np.inf
         found_ids: list[np.ndarray] = []
         found_pixels: list[np.ndarray] = []
         for r, keyframe in enumerate(keyframes):
@@ -623,10 +656,10 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
             height, width = image.shape[:2]
             T = keyframe.T_w_c
             in_camera = (points - T[:3, 3]) @ T[:3, :3]
-            wanted = np.flatnonzero((in_camera[:, 2] > 0) & ~observed[:, r] & observed.any(1))
-            projected = np.full((len(wanted), 2), np.nan)
-            if len(wanted):
-                projected = calibration.project(in_camera[wanted])
+            in_view = (in_camera[:, 2] > 0) & (np.linalg.norm(in_camera[:, :2], axis=1) <= widest * in_camera[:, 2])
+            wanted = np.flatnonzero(in_view & observed_any)
+            wanted = wanted[observation(wanted, np.full(len(wanted), r)) < 0]
+            projected = calibration.project(in_camera[wanted]) if len(wanted) else np.zeros((0, 2))
             work = to_work(projected)
             inside = (np.isfinite(work).all(1) & (work[:, 0] >= margin) & (work[:, 1] >= margin)
                       & (work[:, 0] <= width - 1 - margin) & (work[:, 1] <= height - 1 - margin))
@@ -636,18 +669,20 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
             # so only the max_sources keyframes nearest to the most landmarks are sources, and a landmark
             # whose nearest observer is not one of them is followed from the nearest that is (with all
             # sources, VAMR's search took 12 657 calls and 15.7 s, and was no more accurate: measured).
+            nearest = nearest_observer(wanted, r)
+            chosen = np.argsort(-np.bincount(nearest, minlength=count), kind="stable")[:max_sources]
+            at = np.stack([observation(wanted, np.full(len(wanted), c)) for c in chosen], 1)
             far = np.iinfo(np.int64).max
-            distance = np.where(observed[wanted], np.abs(stream - r)[None], far)
-            nearest = np.argmin(distance, 1)
-            chosen = np.argsort(-np.bincount(nearest, minlength=len(keyframes)), kind="stable")[:max_sources]
-            distance = distance[:, chosen]
-            source = np.where(distance.min(1) < far, chosen[np.argmin(distance, 1)], -1)
+            distance = np.where(at >= 0, np.abs(chosen - r)[None], far)
+            pick = np.argmin(distance, 1)
+            source = np.where(distance.min(1) < far, chosen[pick], -1)
+            source_at = at[np.arange(len(wanted)), pick]
             new_ids, new_pixels = [], []
             for s in chosen.tolist():
                 rows = np.flatnonzero(source == s)
                 if len(rows) == 0:
                     continue
-                start = to_work(keyframes[s].pixels[pixel_rows[wanted[rows], s]])
+                start = to_work(pixels[source_at[rows]])
                 _, moved, kept = track_corners(images[keyframes[s].frame], image, start, work[rows])
                 landed = (moved + 0.5) * scale - 0.5
                 close = np.linalg.norm(landed - projected[rows[kept]], axis=1) < pixel_threshold
