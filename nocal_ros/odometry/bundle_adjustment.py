@@ -235,9 +235,8 @@ def _validate(problem: WindowProblem) -> tuple[np.ndarray, ...]:
             raise fail(f"positions must name keyframe rows in 0..{len(poses) - 1} with finite values")
         if not problem.position_sigma > 0:
             raise fail(f"position_sigma must be positive, got {problem.position_sigma}")
-    if len(np.unique(position_rows)) >= 3:
-        pass  # measured positions fix the gauge and the scale
-    elif fixed.sum() < (1 if problem.scale_pair is not None else 2):
+    # Three or more measured positions fix the gauge and the scale; otherwise fixed poses must.
+    if len(np.unique(position_rows)) < 3 and fixed.sum() < (1 if problem.scale_pair is not None else 2):
         raise fail("a monocular window needs two fixed poses, or one and a scale_pair (gauge and scale), "
                    f"got {int(fixed.sum())}")
     points = np.asarray(problem.points, dtype=np.float64)

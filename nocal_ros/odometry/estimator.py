@@ -733,16 +733,16 @@ class OdometryEstimator:
                 # posed them 1.4 deg from where they stood): first a camera initialisation's solve over
                 # each whole map (every keyframe, the camera and lens free from the guess's prior).
                 maps = {r.map_id: r.local_map for r in self._vo.records}
+                if self.settings.mapping.search_landmarks and self._vo.keyframe_images_dropped:
+                    log.warning("the end-of-replay search covers the newest %d keyframes only: %d keyframe "
+                                "images were let go (tracking.KEYFRAME_IMAGE_BUDGET_BYTES)",
+                                len(self._vo.keyframe_images), self._vo.keyframe_images_dropped)
                 for map_id, local_map in maps.items():
                     # Landmarks that are one scene point seen again tie the map's stretches together.
                     merged = fuse_landmarks(local_map, self._vo.camera.calibration, self.settings.pixel_threshold)
                     for record in self._vo.records:
                         if merged and record.map_id == map_id:
                             record.ids = np.array([merged.get(i, i) for i in record.ids.tolist()], dtype=np.int64)
-                    if self.settings.mapping.search_landmarks and self._vo.keyframe_images_dropped and map_id == next(iter(maps)):
-                        log.warning("the end-of-replay search covers the newest %d keyframes only: %d keyframe "
-                                    "images were let go (tracking.KEYFRAME_IMAGE_BUDGET_BYTES)",
-                                    len(self._vo.keyframe_images), self._vo.keyframe_images_dropped)
                     if self.settings.mapping.search_landmarks and len(local_map.keyframes) >= 3:
                         # Solved whole first: the landmarks are searched for where that map projects them.
                         self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True)

@@ -76,6 +76,17 @@ def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
     return points.reshape(-1, 2)[good].astype(np.float64), moved[good].astype(np.float64), good
 
 
+def native_pixels(work: np.ndarray, work_scale: tuple[float, float]) -> np.ndarray:
+    """Work-image pixels -> native pixels (``work_scale`` native pixels per work pixel; pixel centres at
+    integers in both)."""
+    return (np.asarray(work, dtype=np.float64) + 0.5) * np.asarray(work_scale, dtype=np.float64) - 0.5
+
+
+def work_pixels(native: np.ndarray, work_scale: tuple[float, float]) -> np.ndarray:
+    """Native pixels -> work-image pixels (the inverse of :func:`native_pixels`)."""
+    return (np.asarray(native, dtype=np.float64) + 0.5) / np.asarray(work_scale, dtype=np.float64) - 0.5
+
+
 @dataclass
 class TrackerSettings:
     """How many tracks, and how they are spread.
@@ -151,14 +162,12 @@ class FeatureTracker:
         self._scale = (width / gray.shape[1], height / gray.shape[0])
         return gray
 
-    def to_native(self, work_pixels: np.ndarray) -> np.ndarray:
-        """Work-image pixels -> native pixels (pixel centres at integers in both)."""
-        sx, sy = self._scale
-        return (np.asarray(work_pixels, dtype=np.float64) + 0.5) * np.array([sx, sy]) - 0.5
+    def to_native(self, pixels: np.ndarray) -> np.ndarray:
+        """Work-image pixels -> native pixels (:func:`native_pixels` at this stream's size)."""
+        return native_pixels(pixels, self._scale)
 
-    def to_work(self, native_pixels: np.ndarray) -> np.ndarray:
-        sx, sy = self._scale
-        return (np.asarray(native_pixels, dtype=np.float64) + 0.5) / np.array([sx, sy]) - 0.5
+    def to_work(self, pixels: np.ndarray) -> np.ndarray:
+        return work_pixels(pixels, self._scale)
 
     def current(self) -> TrackedFrame:
         return TrackedFrame(self._ids.copy(), self.to_native(self._points))

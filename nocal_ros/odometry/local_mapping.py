@@ -594,13 +594,9 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
     at the end of a replay: APE Sim(3) lower on 13 (median 0.0221 -> 0.0150 m), the final focal error on
     14 (median 0.57 -> 0.34 %).
     """
-    from nocal_ros.odometry.frontend import WINDOW, track_corners
+    from nocal_ros.odometry.frontend import WINDOW, native_pixels, track_corners, work_pixels
 
-    scale = np.asarray(work_scale, dtype=np.float64)
     margin = WINDOW[0] // 2 + 1  # a window that would leave the image is not followed
-
-    def to_work(pixels: np.ndarray) -> np.ndarray:
-        return (pixels + 0.5) / scale - 0.5
 
     with local_map.lock:
         keyframes = [keyframe for keyframe in local_map.keyframes if keyframe.frame in images]
@@ -660,7 +656,7 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
             wanted = np.flatnonzero(in_view & observed_any)
             wanted = wanted[observation(wanted, np.full(len(wanted), r)) < 0]
             projected = calibration.project(in_camera[wanted]) if len(wanted) else np.zeros((0, 2))
-            work = to_work(projected)
+            work = work_pixels(projected, work_scale)
             inside = (np.isfinite(work).all(1) & (work[:, 0] >= margin) & (work[:, 1] >= margin)
                       & (work[:, 0] <= width - 1 - margin) & (work[:, 1] <= height - 1 - margin))
             wanted, projected, work = wanted[inside], projected[inside], work[inside]
@@ -682,9 +678,9 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
                 rows = np.flatnonzero(source == s)
                 if len(rows) == 0:
                     continue
-                start = to_work(pixels[source_at[rows]])
+                start = work_pixels(pixels[source_at[rows]], work_scale)
                 _, moved, kept = track_corners(images[keyframes[s].frame], image, start, work[rows])
-                landed = (moved + 0.5) * scale - 0.5
+                landed = native_pixels(moved, work_scale)
                 close = np.linalg.norm(landed - projected[rows[kept]], axis=1) < pixel_threshold
                 new_ids.append(ids[wanted[rows[kept[close]]]])
                 new_pixels.append(landed[close])
