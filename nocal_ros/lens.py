@@ -113,6 +113,50 @@ def distort_normalised(xy, coefficients, model: str):
     return xp.stack((xd, yd), -1)
 
 
+def distortion_jacobians(xy: np.ndarray, coefficients: np.ndarray, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives of :func:`distort_normalised` at float64 points ``xy`` ``(N, 2)``.
+
+    Returns ``d(xd, yd) / d(x, y)`` ``(N, 2, 2)`` and ``d(xd, yd) / d(first four coefficients)``
+    ``(N, 2, 4)``: ``(k1, k2, p1, p2)`` for ``plumb_bob`` (``k3`` is not differentiated), ``(k1..k4)`` for
+    ``equidistant``.
+    """
+    D = np.asarray(coefficients, dtype=np.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    d_point = np.empty((len(xy), 2, 2))
+    d_coefficients = np.empty((len(xy), 2, 4))
+    if model == "equidistant":
+        r2 = x * x + y * y
+        r = np.sqrt(r2)
+        centre = r < 1e-12
+        safe_r = np.where(centre, 1.0, r)
+        theta = np.arctan(r)
+        theta_d, d_poly = _theta_distorted(theta, D)
+        scale = np.where(centre, 1.0, theta_d / safe_r)
+        # d(scale)/dr / r: (theta_d' theta' r - theta_d) / r^3, with theta_d' = d_poly, theta' = 1 / (1 + r^2).
+        d_scale = np.where(centre, 0.0, (d_poly / (1.0 + r2) * safe_r - theta_d) / safe_r**3)
+        d_point[:, 0, 0] = scale + x * x * d_scale
+        d_point[:, 0, 1] = d_point[:, 1, 0] = x * y * d_scale
+        d_point[:, 1, 1] = scale + y * y * d_scale
+        power = theta.copy()
+        for n in range(4):  # d theta_d / d k_n = theta^(2n + 3)
+            power = power * theta * theta
+            ratio = np.where(centre, 0.0, power / safe_r)
+            d_coefficients[:, 0, n] = x * ratio
+            d_coefficients[:, 1, n] = y * ratio
+        return d_point, d_coefficients
+    j00, j01, j10, j11 = _distortion_jacobian(x, y, D, model)
+    d_point[:, 0, 0], d_point[:, 0, 1], d_point[:, 1, 0], d_point[:, 1, 1] = j00, j01, j10, j11
+    s = x * x + y * y
+    xy2 = 2 * x * y
+    d_coefficients[:, 0, 0], d_coefficients[:, 1, 0] = x * s, y * s
+    d_coefficients[:, 0, 1], d_coefficients[:, 1, 1] = x * s * s, y * s * s
+    d_coefficients[:, 0, 2], d_coefficients[:, 1, 2] = xy2, s + 2 * y * y
+    d_coefficients[:, 0, 3], d_coefficients[:, 1, 3] = s + 2 * x * x, xy2
+    if model != "plumb_bob":  # rational_polynomial's k1, k2 enter through its denominator too
+        raise ValueError(f"distortion_jacobians supports plumb_bob and equidistant, got {model!r}")
+    return d_point, d_coefficients
+
+
 def _distortion_jacobian(x, y, D, model: str):
     """``d(xd, yd) / d(x, y)`` of the polynomial models, as four arrays."""
     s = x * x + y * y
