@@ -1,4 +1,4 @@
-"""Windowed bundle adjustment (GTSAM) on windows whose pixels OpenCV projected.
+"""Windowed bundle adjustment on windows whose pixels OpenCV projected.
 
 Every observation comes from ``cv2.projectPoints`` / ``cv2.fisheye.projectPoints`` (the independent
 reference), the truth is known, and the checks are the recovered camera, poses and landmarks, the
@@ -15,11 +15,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-pytest.importorskip("gtsam")
-
-from nocal_ros.errors import NocalError  # noqa: E402
-from nocal_ros.lens import CameraCalibration  # noqa: E402
-from nocal_ros.odometry.bundle_adjustment import (  # noqa: E402
+from nocal_ros.errors import NocalError
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.bundle_adjustment import (
     BundleAdjustmentInputError,
     CameraPrior,
     WindowProblem,
@@ -129,7 +127,7 @@ def test_solver_projection_equals_opencv_and_lens(model):
     assert np.isnan(solver_project(camera, T_w_c, T_w_c[:3, 3] - 2.0 * T_w_c[:3, 2])).all()
 
 
-def test_camera_parameters_round_trip_and_refuse_what_gtsam_cannot_model():
+def test_camera_parameters_round_trip_and_refuse_what_the_solver_cannot_model():
     camera = true_camera("plumb_bob")
     assert calibration_from_parameters(camera_parameters(camera), camera) == camera
     fisheye = true_camera("equidistant")
@@ -366,3 +364,83 @@ def test_bad_input_raises_a_clear_nocal_error(change, message):
         bundle_adjust(problem)
     assert isinstance(raised.value, NocalError)
     assert len(str(raised.value).splitlines()) == 1
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", "equidistant"])
+def test_solver_jacobians_equal_finite_differences_of_its_projection(model):
+    """The solver's analytic derivatives (pose on the right, ``R Exp(omega)``, ``t + R v``; point;
+    camera parameters) against central differences of its own projection."""
+    from nocal_ros.odometry.bundle_adjustment import _project, _so3_exp
+
+    camera = true_camera(model)
+    parameters = camera_parameters(camera)
+    if model == "plumb_bob":
+        parameters[6:] = [0.002, -0.003]
+    rng = np.random.default_rng(2)
+    R = Rotation.from_rotvec(rng.normal(0, 0.3, (20, 3))).as_matrix()
+    t = rng.normal(0, 0.5, (20, 3))
+    rays = camera.unproject(np.stack((rng.uniform(0, camera.width - 1, 20), rng.uniform(0, camera.height - 1, 20)), -1))
+    points = np.einsum("nij,nj->ni", R, rays * rng.uniform(1.0, 6.0, (20, 1))) + t
+    _, (d_pose, d_points, d_camera), front = _project(parameters, model, R, t, points, jacobians=True)
+    assert front.all()
+    h = 1e-6
+
+    def project(R_, t_, points_, parameters_):
+        return _project(parameters_, model, R_, t_, points_)[0]
+
+    for i in range(6):
+        xi = np.zeros((20, 6))
+        xi[:, i] = h
+        plus = project(R @ _so3_exp(xi[:, :3]), t + np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
+        minus = project(R @ _so3_exp(-xi[:, :3]), t - np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
+        np.testing.assert_allclose(d_pose[:, :, i], (plus - minus) / (2 * h), rtol=1e-5, atol=1e-4)
+    for i in range(3):
+        step = np.zeros(3)
+        step[i] = h
+        numeric = (project(R, t, points + step, parameters) - project(R, t, points - step, parameters)) / (2 * h)
+        np.testing.assert_allclose(d_points[:, :, i], numeric, rtol=1e-5, atol=1e-4)
+    for i in range(8):
+        step = np.zeros(8)
+        step[i] = h
+        numeric = (project(R, t, points, parameters + step) - project(R, t, points, parameters - step)) / (2 * h)
+        np.testing.assert_allclose(d_camera[:, :, i], numeric, rtol=1e-5, atol=1e-4)
+
+
+def test_dense_and_block_sparse_schur_complements_give_the_same_solution(monkeypatch):
+    """Windows build the reduced system by a dense product, whole maps by a block-sparse one."""
+    import nocal_ros.odometry.bundle_adjustment as module
+
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=21, keyframes=8)
+    rng = np.random.default_rng(22)
+    start, poses0, points0 = perturbed_start(camera, poses, fixed, points, rng)
+    problem = WindowProblem(start, poses0, fixed, points0, kf, pt, pixels + rng.normal(0, 0.5, pixels.shape),
+                            covariance_of=(5,))
+    dense = bundle_adjust(problem)
+    monkeypatch.setattr(module, "DENSE_SCHUR_PAIRS", 0)
+    block_sparse = bundle_adjust(problem)
+    assert dense.success and block_sparse.success
+    assert dense.iterations == block_sparse.iterations
+    np.testing.assert_allclose(block_sparse.poses, dense.poses, atol=1e-9)
+    np.testing.assert_allclose(camera_parameters(block_sparse.calibration), camera_parameters(dense.calibration), rtol=1e-9)
+    np.testing.assert_allclose(block_sparse.camera_covariance, dense.camera_covariance, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(block_sparse.pose_covariances[5], dense.pose_covariances[5], rtol=1e-6, atol=1e-14)
+
+
+def test_an_observation_given_twice_counts_twice():
+    """Every observation given twice (as a keyframe seeing one landmark under two fused tracks does, which
+    the Schur complement must sum): the same minimum by the same steps (cost, gradient and damping all
+    doubled), half the covariance."""
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=23)
+    rng = np.random.default_rng(24)
+    start, poses0, points0 = perturbed_start(camera, poses, fixed, points, rng)
+    noisy = pixels + rng.normal(0, 0.5, pixels.shape)
+    once = bundle_adjust(WindowProblem(start, poses0, fixed, points0, kf, pt, noisy))
+    twice = bundle_adjust(WindowProblem(start, poses0, fixed, points0, np.concatenate([kf, kf]),
+                                        np.concatenate([pt, pt]), np.concatenate([noisy, noisy])))
+    assert once.success and twice.success and once.iterations == twice.iterations
+    np.testing.assert_allclose(twice.poses, once.poses, atol=1e-8)
+    np.testing.assert_allclose(camera_parameters(twice.calibration), camera_parameters(once.calibration), rtol=1e-8)
+    # Half, to within what the landmarks' weak prior (the same information both times) changes.
+    scale = np.sqrt(np.outer(np.diag(once.camera_covariance), np.diag(once.camera_covariance))) + 1e-300
+    assert np.abs((twice.camera_covariance - 0.5 * once.camera_covariance) / scale).max() < 1e-3
+    assert np.abs(np.diag(twice.camera_covariance)[:6] / np.diag(once.camera_covariance)[:6] - 0.5).max() < 1e-4

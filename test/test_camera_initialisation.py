@@ -9,15 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("gtsam")
+from test_bundle_adjustment import make_window, rotation_errors_deg
 
-from test_bundle_adjustment import make_window, rotation_errors_deg  # noqa: E402
-
-from nocal_ros.lens import CameraCalibration  # noqa: E402
-from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem  # noqa: E402
-from nocal_ros.odometry.calibration import GUESS_STD, OnlineCamera, calibration_information, prior_calibration  # noqa: E402
-from nocal_ros.odometry.camera_initialisation import FOCAL_HYPOTHESES, initialise_camera, rebuild  # noqa: E402
-from nocal_ros.odometry.local_mapping import LocalMapping, MappingSettings  # noqa: E402
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem
+from nocal_ros.odometry.calibration import GUESS_STD, OnlineCamera, calibration_information, prior_calibration
+from nocal_ros.odometry.camera_initialisation import FOCAL_HYPOTHESES, initialise_camera, rebuild
+from nocal_ros.odometry.local_mapping import LocalMapping, MappingSettings
 
 
 def noisy_window(seed: int, keyframes: int = 10, landmarks: int = 200, noise_px: float = 0.3):

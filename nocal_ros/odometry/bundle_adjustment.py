@@ -1,48 +1,47 @@
-"""Windowed bundle adjustment over keyframe poses, landmarks AND the camera, solved with GTSAM 4.3.
+"""Windowed bundle adjustment over keyframe poses, landmarks AND the camera: robust Levenberg-Marquardt on
+the Schur complement, in numpy and scipy.
 
 The VO's backend worker calls :func:`bundle_adjust` on each new keyframe with the last N keyframes,
 their landmarks and the current camera. The camera is a parametric
 :class:`~nocal_ros.lens.CameraCalibration` (the learnt ``CameraModel`` is converted to it by
-``CameraModel.to_calibration``, which reports the fit's residual):
+``CameraModel.to_calibration``, which reports the fit's residual), projected by the same function as
+everywhere else, ``lens.distort_normalised``, with its derivatives ``lens.distortion_jacobians``:
 
-* ``plumb_bob`` with ``k3 = 0``: GTSAM's ``Cal3DS2`` (fx fy s u0 v0 k1 k2 p1 p2), exactly OpenCV's
-  ``cv2.projectPoints`` with ``(k1, k2, p1, p2, 0)``;
-* ``equidistant``: GTSAM's ``Cal3Fisheye`` (fx fy s u0 v0 k1..k4), exactly
-  ``cv2.fisheye.projectPoints`` for points in front of the camera.
+* ``plumb_bob`` with ``k3 = 0`` (fx fy cx cy k1 k2 p1 p2), exactly OpenCV's ``cv2.projectPoints`` with
+  ``(k1, k2, p1, p2, 0)``;
+* ``equidistant`` (fx fy cx cy k1..k4), exactly ``cv2.fisheye.projectPoints`` for points in front of the
+  camera.
 
-Both agree with ``CameraCalibration.project`` and OpenCV to below 1e-12 px (``solver_project``;
-``test/test_bundle_adjustment.py`` asserts 1e-9).
-GTSAM's skew ``s`` is no parameter of these models: it is pinned at 0.
+``solver_project`` (the solver's measurement model) agrees with OpenCV to below 1e-9 px and its
+Jacobians with finite differences (``test/test_bundle_adjustment.py``).
 
-Why GTSAM (measured by ``scripts/compare/bundle_adjustment_solvers.py``; BENCHMARKS.md, "Windowed
-bundle adjustment"): of the candidates only GTSAM takes a prior with a full information matrix on the
-intrinsics, and that prior is how the camera's information carries over from window to window, i.e.
-the online self-calibration. It also gives the marginal covariances the VO needs (``gtsam.Marginals``)
-and both lens models. pycolmap's bundle adjuster (Ceres) reaches the same minimum to the digit 2.2-4.5x
-faster in CPU time but can only fix or free the intrinsics, never weigh them against a prior. scipy's
-``least_squares`` (trust region on a sparse Jacobian, lsmr) did not converge in 20 evaluations.
-iSAM2 failed from cold starts (indeterminate Gauss-Newton steps) and was no faster from warm ones.
-
-Cost, one thread, CPU time on the shared 2-core machine (load ~10): 10 keyframes, 300 landmarks
-(~1880 observations), warm start, ``relative_tolerance=1e-3``: 83 ms plus 34 ms for the camera's
-covariance; 150 landmarks: 30 + 8 ms, inside the VO's 50 ms per keyframe. Building the graph in
-Python is 7-13 ms of it. GTSAM holds the GIL for the whole solve: run the backend in a process
-(problem and solution pickle), not a thread, or the frontend stalls for the length of each solve.
+The solver: each iteration linearises every observation (analytic Jacobians, vectorised), reweights
+it by its robust loss, eliminates the landmarks (3x3 blocks) and solves the reduced system over the
+free poses and camera parameters by Cholesky, with Ceres' Levenberg-Marquardt damping; the landmarks
+follow by back-substitution. Why this and not a library (measured; BENCHMARKS.md, "Windowed bundle
+adjustment"; ``scripts/compare/bundle_adjustment_solvers.py``): the camera's information must carry
+over from window to window as a prior with a full information matrix (the online
+self-calibration), and its marginal covariance must come back. GTSAM 4.3 does both and was the
+solver until 2026-12-02. On the 174 problems of two replays (the demo camera's, VAMR's) this one takes
+the same number of iterations on 172, ends within 4.5 mm and a relative focal difference of 7e-5 of
+GTSAM's where both converged, and needs half the CPU time per window (median 89 against 177 ms and
+105 against 212 ms; covariance 9-10 against 25-28 ms); the initialisations' and whole maps' solves
+took 10.0 against 13.9 s in all. pycolmap's bundle adjuster (Ceres) was 2.2-4.5x
+faster than GTSAM but can only fix or free the intrinsics, never weigh them against a prior; scipy's
+``least_squares`` did not converge in 20 evaluations; GTSAM's iSAM2 failed from cold starts.
 
 Conventions:
 
-* Poses are ``T_w_c`` (camera to world), optical frame, 4x4 float64. ``gtsam.Pose3`` is the same
-  matrix; its tangent is ``(omega, v)`` (rotation first) with a right perturbation
-  ``T Exp(xi)``. Pose covariances here are reordered to ``(rho, theta)`` (translation first), as in
-  :mod:`nocal_ros.odometry.covariance`.
-* Camera parameters: ``camera_parameters`` below; the covariance is over that vector (GTSAM's
-  calibration tangent is the plain difference of its parameter vector, so no Jacobian is needed;
-  the skew row and column are dropped).
+* Poses are ``T_w_c`` (camera to world), optical frame, 4x4 float64, perturbed on the right:
+  ``R Exp(omega)``, ``t + R v``; the solver's pose tangent is ``(omega, v)``, and pose covariances are
+  returned reordered to ``(rho, theta)`` (translation first), as in :mod:`nocal_ros.odometry.covariance`.
+* Camera parameters: ``camera_parameters`` below; the covariance is over that vector, zero in the
+  rows and columns of parameters the problem's ``camera`` mode does not free.
 * Pixels are native, distorted, with pixel centres at integer coordinates (OpenCV's convention).
 * The gauge: at least two keyframes are held fixed (monocular gauge and scale), or one and the
-  distance between two (``scale_pair``, a range factor), which leaves their relative rotation free. Fixed poses and
-  pinned camera parameters are held by priors with sigmas of 1e-8 (a pose's residual stays below
-  1e-8 m and rad; their covariances are returned as zeros; 1e-9 made the normal equations indeterminate).
+  distance between two (``scale_pair``, within 1e-4 of it), which leaves their relative rotation
+  free; or three or more measured ``positions``. Fixed poses and pinned camera parameters are not
+  variables: they do not move, and their covariances are returned as zeros.
 
 Robustness: each observation has a Cauchy loss with scale ``robust_threshold_px`` (``robust_loss``
 selects Huber instead). With 0.5 px noise and 5 % outliers of 10-40 px, Huber's linear influence
@@ -51,39 +50,37 @@ lets the outliers bias the camera. On the benchmark's windows (BENCHMARKS.md) Ca
 0.149 deg and 89 mm. On 12 of the tests' smaller windows per lens (cold start 15 % off), the median
 focal error was 0.50 % (plumb_bob) and 1.5 % (fisheye) against Huber's 1.7 % and 3.0 %, and the
 errors were 1.0 and 1.5 reported standard deviations (rms over windows) against Huber's 2.1 and 1.9:
-with Cauchy the covariance describes the error.
+with Cauchy the covariance describes the error (measured with GTSAM; the tests hold this solver to
+the same bounds).
 For the covariances, landmarks carry a weak prior (sigma 100 times the median camera-landmark
 distance) so that a track of nearly parallel rays leaves the system determinate without informing
 anything else (without it 3 of 12 plumb_bob and 2 of 12 fisheye test windows failed on one such
 landmark).
 
 Bad input (NaN, wrong shapes, an index out of range, fewer than two fixed poses without a ``scale_pair``
-or three measured ``positions``, a camera model or
-``k3`` GTSAM cannot represent, a free keyframe without observations) raises
-:class:`BundleAdjustmentInputError` naming the field. A failure inside the solver does NOT raise:
-the solution carries the start values, ``success = False`` and GTSAM's message, so the worker can
-drop that window and carry on. GTSAM's Levenberg-Marquardt absorbs a singular step by raising its
-damping, so the indeterminacy shows where the covariance is computed (``gtsam.Marginals`` raises):
-whenever a covariance is asked for. Without one (``camera="fixed"`` or ``camera_covariance=False``,
-and no ``covariance_of``) an indeterminate direction (a keyframe seeing two landmarks) is not
-detected. Observations whose landmark starts behind its keyframe are left out of the solve and come
-back as non-inliers (GTSAM's factor would zero them anyway and print a line per landmark on stdout);
-a landmark that crosses behind a camera during the solve is zeroed the same way (GTSAM prints a
-``CheiralityException`` line for it).
+or three measured ``positions``, a camera model or ``k3`` the solver cannot represent, a free keyframe
+without observations) raises :class:`BundleAdjustmentInputError` naming the field. A failure inside
+the solver does NOT raise: the solution carries the start values, ``success = False`` and a message,
+so the worker can drop that window and carry on. Levenberg-Marquardt absorbs a singular step by
+raising its damping, so an indeterminate system shows where the covariance is computed (the reduced
+system's scaled eigenvalues): whenever a covariance is asked for. Without one (``camera="fixed"`` or
+``camera_covariance=False``, and no ``covariance_of``) an indeterminate direction (a keyframe seeing
+two landmarks) is not detected. Observations whose landmark starts behind its keyframe are left out
+of the solve and come back as non-inliers; a landmark that crosses behind a camera during the solve
+contributes no residual there (as GTSAM's factor did).
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import sys
+import importlib
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from nocal_ros.errors import NocalError
-from nocal_ros.lens import CameraCalibration
+from nocal_ros.lens import CameraCalibration, distort_normalised, distortion_jacobians
 
 #: Which camera parameters each ``WindowProblem.camera`` mode frees (indices into camera_parameters).
 CAMERA_MODES = {
@@ -96,15 +93,16 @@ CAMERA_MODES = {
 SUPPORTED_MODELS = ("plumb_bob", "equidistant")
 ROBUST_LOSSES = ("huber", "cauchy")
 
-# Sigma of the priors that hold fixed poses, pinned camera parameters and the skew. Small enough to
-# move nothing the tests can see, large enough to keep the normal equations well conditioned.
-_PINNED_SIGMA = 1e-8
-# Sigma of "free" camera parameters in the pinning prior: no information at all, to double precision.
-_FREE_SIGMA = 1e8
+# Levenberg-Marquardt as Ceres runs it: the damping's start, bounds and the clamp of the diagonal it
+# scales, and the share of the linear model's predicted decrease a step must achieve to be taken.
+_LAMBDA_INITIAL, _LAMBDA_MIN, _LAMBDA_MAX = 1e-4, 1e-16, 1e32
+_MIN_DIAGONAL, _MAX_DIAGONAL = 1e-6, 1e32
+_MIN_MODEL_FIDELITY = 1e-3
+# The smallest eigenvalue of the diagonally scaled reduced system below which it is indeterminate.
+_INDETERMINATE = 1e-12
 _LANDMARK_PRIOR_SCALE = 100.0
-# Relative sigma of the distance a scale_pair holds. Tighter (1e-6, 1e-8) made gtsam.Marginals report an
-# indeterminate system beside the 1e-8 pose prior (measured on VO windows); 1e-4 of the baseline is far
-# below what one window can tell about its scale.
+# Relative sigma of the distance a scale_pair holds: far below what one window can tell about its scale
+# (tighter ones made GTSAM's covariance indeterminate beside its 1e-8 pose priors, measured).
 _SCALE_SIGMA = 1e-4
 
 
@@ -132,7 +130,7 @@ def camera_parameters(calibration: CameraCalibration) -> np.ndarray:
         raise BundleAdjustmentInputError(f"bundle adjustment needs a camera matrix without skew, got K[0, 1] = {calibration.K[0, 1]}")
     if model == "plumb_bob" and calibration.D[4] != 0.0:
         raise BundleAdjustmentInputError(
-            f"bundle adjustment's plumb_bob camera has k3 = 0 (GTSAM Cal3DS2), got k3 = {calibration.D[4]}"
+            f"bundle adjustment's plumb_bob camera has k3 = 0, got k3 = {calibration.D[4]}"
         )
     return np.concatenate([[calibration.fx, calibration.fy, calibration.cx, calibration.cy], calibration.D[:4]])
 
@@ -197,7 +195,7 @@ class WindowSolution:
     success: bool = True  # False: the solver failed; poses, points and camera are the start values
     message: str = ""
     residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) final reprojection error, inf behind
-    covariance_cpu_seconds: float = 0.0  # CPU time of the calling thread in gtsam.Marginals (part of seconds)
+    covariance_cpu_seconds: float = 0.0  # CPU time of the calling thread in the covariance (part of seconds)
 
 
 def _validate(problem: WindowProblem) -> tuple[np.ndarray, ...]:
@@ -289,42 +287,86 @@ def _validate(problem: WindowProblem) -> tuple[np.ndarray, ...]:
     return start, poses, fixed, points, indices[0], indices[1], pixels
 
 
-def _gtsam_calibration(gtsam, model: str, parameters: np.ndarray):
-    fx, fy, cx, cy = parameters[:4]
-    if model == "equidistant":
-        return gtsam.Cal3Fisheye(fx, fy, 0.0, cx, cy, *parameters[4:])
-    return gtsam.Cal3DS2(fx, fy, 0.0, cx, cy, *parameters[4:])
-
-
-# GTSAM's calibration vector is (fx, fy, s, u0, v0, d1..d4): ours without the skew.
-_TANGENT_OF_PARAMETER = np.array([0, 1, 3, 4, 5, 6, 7, 8])
-
-
 def solver_project(calibration: CameraCalibration, T_w_c: np.ndarray, points_w: np.ndarray) -> np.ndarray:
-    """Pixels ``(N, 2)`` of world points as the solver projects them (GTSAM ``PinholeCamera``).
+    """Pixels ``(N, 2)`` of world points as the solver projects them (its own measurement model).
 
-    The solver's own measurement model, for checking it against ``CameraCalibration.project`` and
-    OpenCV. NaN for points not in front of the camera (GTSAM raises a cheirality error there).
+    For checking the solver against ``CameraCalibration.project`` and OpenCV. NaN for points not in
+    front of the camera (the solver gives them no residual).
     """
-    import gtsam
-
-    parameters = camera_parameters(calibration)
-    model = calibration.distortion_model
-    Camera = gtsam.PinholeCameraCal3Fisheye if model == "equidistant" else gtsam.PinholeCameraCal3DS2
-    camera = Camera(gtsam.Pose3(np.asarray(T_w_c, dtype=np.float64)), _gtsam_calibration(gtsam, model, parameters))
+    T_w_c = np.asarray(T_w_c, dtype=np.float64)
     points_w = np.asarray(points_w, dtype=np.float64).reshape(-1, 3)
-    depth = (points_w - T_w_c[:3, 3]) @ np.asarray(T_w_c, dtype=np.float64)[:3, 2]
-    pixels = np.full((len(points_w), 2), np.nan)
-    for n in np.flatnonzero(depth > 0):
-        pixels[n] = camera.project(points_w[n])
+    count = len(points_w)
+    rotations = np.broadcast_to(T_w_c[:3, :3], (count, 3, 3))
+    translations = np.broadcast_to(T_w_c[:3, 3], (count, 3))
+    pixels, _, front = _project(camera_parameters(calibration), calibration.distortion_model,
+                                rotations, translations, points_w)
+    pixels[~front] = np.nan
     return pixels
 
 
-def _to_tangent_information(information: np.ndarray, skew_information: float) -> np.ndarray:
-    full = np.zeros((9, 9))
-    full[np.ix_(_TANGENT_OF_PARAMETER, _TANGENT_OF_PARAMETER)] = information
-    full[2, 2] = skew_information
-    return full
+def _distortion_vector(parameters: np.ndarray, model: str) -> np.ndarray:
+    """The lens coefficients in ``lens.distort_normalised``'s order (plumb_bob gets its k3 = 0)."""
+    return parameters[4:].copy() if model == "equidistant" else np.concatenate([parameters[4:], [0.0]])
+
+
+def _project(parameters: np.ndarray, model: str, rotations: np.ndarray, translations: np.ndarray,
+             points_w: np.ndarray, jacobians: bool = False):
+    """Pixels ``(M, 2)`` of world points seen from cameras ``(R, t)`` (``T_w_c``), through
+    ``lens.distort_normalised`` (the camera model's one definition).
+
+    Returns ``(pixels, jacobians, front)``. With ``jacobians``: ``d pixel / d (omega, v)`` ``(M, 2, 6)``
+    for the right perturbation ``R Exp(omega)``, ``t + R v``; ``d pixel / d point`` ``(M, 2, 3)``;
+    ``d pixel / d camera_parameters`` ``(M, 2, 8)``. Points not in front (``front`` False) get
+    zero pixels and zero Jacobians.
+    """
+    rotations_t = rotations.transpose(0, 2, 1)
+    points_c = np.matmul(rotations_t, (points_w - translations)[:, :, None])[:, :, 0]
+    z = points_c[:, 2]
+    front = z > 1e-9
+    inverse_z = np.where(front, 1.0 / np.where(front, z, 1.0), 0.0)
+    normalised = points_c[:, :2] * inverse_z[:, None]
+    D = _distortion_vector(parameters, model)
+    distorted = distort_normalised(normalised, D, model)
+    fx, fy, cx, cy = parameters[:4]
+    pixels = np.stack((fx * distorted[:, 0] + cx, fy * distorted[:, 1] + cy), -1)
+    pixels[~front] = 0.0
+    if not jacobians:
+        return pixels, None, front
+    d_point, d_coefficients = distortion_jacobians(normalised, D, model)
+    focal = np.array([fx, fy])
+    d_pixel_normalised = focal[None, :, None] * d_point  # (M, 2, 2)
+    d_normalised_c = np.zeros((len(z), 2, 3))
+    d_normalised_c[:, 0, 0] = d_normalised_c[:, 1, 1] = inverse_z
+    d_normalised_c[:, :, 2] = -normalised * inverse_z[:, None]
+    d_pixel_c = d_pixel_normalised @ d_normalised_c  # (M, 2, 3)
+    d_pose = np.empty((len(z), 2, 6))
+    # points_c' = Exp(-omega) (points_c - v): d/d omega = [points_c]x, d/d v = -I.
+    x, y, w = points_c[:, 0:1], points_c[:, 1:2], points_c[:, 2:3]
+    d_pose[:, :, 0] = d_pixel_c[:, :, 1] * w - d_pixel_c[:, :, 2] * y
+    d_pose[:, :, 1] = d_pixel_c[:, :, 2] * x - d_pixel_c[:, :, 0] * w
+    d_pose[:, :, 2] = d_pixel_c[:, :, 0] * y - d_pixel_c[:, :, 1] * x
+    d_pose[:, :, 3:] = -d_pixel_c
+    d_points = np.matmul(d_pixel_c, rotations_t)  # points_c = R^T (X - t)
+    d_camera = np.zeros((len(z), 2, 8))
+    d_camera[:, 0, 0], d_camera[:, 1, 1] = distorted[:, 0], distorted[:, 1]
+    d_camera[:, 0, 2] = d_camera[:, 1, 3] = 1.0
+    d_camera[:, :, 4:] = focal[None, :, None] * d_coefficients
+    for array in (d_pose, d_points, d_camera):
+        array[~front] = 0.0
+    return pixels, (d_pose, d_points, d_camera), front
+
+
+def _so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(N, 3, 3)`` of rotation vectors ``(N, 3)`` (Rodrigues)."""
+    angle = np.linalg.norm(rotation_vectors, axis=1)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0 - angle**2 / 6.0, np.sin(angle) / safe)
+    b = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(angle)) / safe**2)
+    K = np.zeros((len(angle), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -rotation_vectors[:, 2], rotation_vectors[:, 1], -rotation_vectors[:, 0]
+    K -= K.transpose(0, 2, 1)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def _reprojection_errors(calibration: CameraCalibration, poses, points, keyframe_index, point_index, pixels):
@@ -336,94 +378,362 @@ def _reprojection_errors(calibration: CameraCalibration, poses, points, keyframe
     return np.where((points_c[:, 2] > 0) & np.isfinite(error), error, np.inf)
 
 
+#: Windows with at most this many (free keyframe, landmark) pairs build the Schur complement's pose
+#: blocks by one dense product; larger ones (whole maps) by a block-sparse one (measured on the VO's
+#: windows: 1.4 ms dense, 4.5 ms block-sparse, 11 ms sparse; a whole map's dense product would be GFLOPs).
+DENSE_SCHUR_PAIRS = 40_000
+
+
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^T b`` per observation for two-row Jacobians ``(M, 2, i)``, ``(M, 2, j)`` -> ``(M, i, j)``."""
+    return a[:, 0, :, None] * b[:, 0, None, :] + a[:, 1, :, None] * b[:, 1, None, :]
+
+
+class _Window:
+    """One window's least-squares problem in the solver's variables: the free poses (``(omega, v)``
+    each), the free camera parameters, and the observed landmarks.
+
+    The landmarks are eliminated by the Schur complement (each couples only to its observations'
+    poses and the camera), so each step solves a dense system of ``6 x free poses + free camera
+    parameters`` unknowns: the reduced camera system of Ceres and COLMAP. Observations are kept
+    sorted by keyframe, then landmark, so that a keyframe's are one slice.
+    """
+
+    def __init__(self, problem: WindowProblem, start: np.ndarray, poses: np.ndarray, fixed: np.ndarray,
+                 points: np.ndarray, keyframe_index: np.ndarray, point_index: np.ndarray, pixels: np.ndarray,
+                 used: np.ndarray) -> None:
+        from scipy import sparse
+
+        self.problem = problem
+        self.model = problem.calibration.distortion_model
+        self.camera_free = np.array(CAMERA_MODES[problem.camera], dtype=np.int64)
+        self.pose_variable = np.full(len(poses), -1)
+        self.pose_variable[~fixed] = np.arange(int((~fixed).sum()))
+        self.free_poses = int((~fixed).sum())
+        self.pose_size = 6 * self.free_poses
+        self.size = self.pose_size + len(self.camera_free)
+        order = used[np.lexsort((point_index[used], keyframe_index[used]))]
+        self.order = order  # the problem's observation of each of the window's
+        self.keyframe = keyframe_index[order]
+        self.point_row = point_index[order]
+        self.pixels = pixels[order]
+        self.observed_points = np.unique(self.point_row)
+        self.point_variable = np.full(len(points), -1)
+        self.point_variable[self.observed_points] = np.arange(len(self.observed_points))
+        self.point = self.point_variable[self.point_row]
+        count, landmarks = len(self.keyframe), len(self.observed_points)
+        self.sum_by_point = sparse.csr_matrix((np.ones(count), (self.point, np.arange(count))), shape=(landmarks, count))
+        # Observations on free keyframes: one contiguous slice per free keyframe.
+        variable = self.pose_variable[self.keyframe]
+        self.on_free_pose = np.flatnonzero(variable >= 0)
+        self.free_variable = variable[self.on_free_pose]
+        self.free_point = self.point[self.on_free_pose]
+        self.pose_bounds = np.searchsorted(self.free_variable, np.arange(self.free_poses + 1))
+        free_count = len(self.on_free_pose)
+        self.sum_free_by_point = sparse.csr_matrix(
+            (np.ones(free_count), (self.free_point, np.arange(free_count))), shape=(landmarks, free_count))
+        self.sum_free_by_pose = sparse.csr_matrix(
+            (np.ones(free_count), (self.free_variable, np.arange(free_count))), shape=(self.free_poses, free_count))
+        # A keyframe that observes one landmark twice (two tracks fused into it) needs its blocks summed,
+        # which the block-sparse product does and the dense assignment would not.
+        repeated = bool(np.any((np.diff(self.free_variable) == 0) & (np.diff(self.free_point) == 0)))
+        self.dense_schur = self.free_poses * landmarks <= DENSE_SCHUR_PAIRS and not repeated
+        self.k = problem.robust_threshold_px / problem.pixel_sigma
+        self.cauchy = problem.robust_loss == "cauchy"
+        self.prior = None
+        if problem.camera_prior is not None and len(self.camera_free):
+            information = np.asarray(problem.camera_prior.information, dtype=np.float64)
+            information = 0.5 * (information + information.T)
+            if np.abs(information).max() > 0:
+                # 0.5 d^T I d as a residual: the symmetric square root of I.
+                eigenvalues, eigenvectors = np.linalg.eigh(information)
+                root = np.sqrt(np.clip(eigenvalues, 0.0, None))[:, None] * eigenvectors.T
+                self.prior = (camera_parameters(problem.camera_prior.calibration), root)
+        self.scale_distance = 0.0
+        if problem.scale_pair is not None:
+            i, j = (int(r) for r in problem.scale_pair)
+            self.scale_distance = float(np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]))
+
+    # -- the cost and its linearisation -----------------------------------------------------------
+
+    def _residuals(self, state, jacobians: bool):
+        rotations, translations, points, parameters = state
+        pixels, derivatives, front = _project(parameters, self.model, rotations[self.keyframe],
+                                              translations[self.keyframe], points[self.point_row], jacobians)
+        # A landmark behind its camera has no residual (as GTSAM's factor did, which this solver replaced).
+        residuals = np.where(front[:, None], pixels - self.pixels, 0.0) / self.problem.pixel_sigma
+        return residuals, derivatives
+
+    def _loss(self, squared: np.ndarray) -> np.ndarray:
+        k2 = self.k * self.k
+        if self.cauchy:
+            return 0.5 * k2 * np.log1p(squared / k2)
+        norm = np.sqrt(squared)
+        return np.where(norm <= self.k, 0.5 * squared, self.k * norm - 0.5 * k2)
+
+    def _weights(self, squared: np.ndarray) -> np.ndarray:
+        if self.cauchy:
+            return 1.0 / (1.0 + squared / (self.k * self.k))
+        norm = np.sqrt(squared)
+        return np.where(norm <= self.k, 1.0, self.k / np.maximum(norm, 1e-300))
+
+    def _extra_residuals(self, state):
+        """The residuals and Jacobians (over the pose and camera variables) of the camera prior, the
+        scale pair and the measured positions: ``[(residual (r,), jacobian (r, size))]``."""
+        rotations, translations, _, parameters = state
+        problem = self.problem
+        terms = []
+        if self.prior is not None:
+            mean, root = self.prior
+            jacobian = np.zeros((8, self.size))
+            jacobian[:, self.pose_size:] = root[:, self.camera_free]
+            terms.append((root @ (parameters - mean), jacobian))
+        if problem.scale_pair is not None:
+            i, j = (int(r) for r in problem.scale_pair)
+            difference = translations[i] - translations[j]
+            distance = float(np.linalg.norm(difference))
+            sigma = _SCALE_SIGMA * self.scale_distance
+            jacobian = np.zeros((1, self.size))
+            direction = difference / max(distance, 1e-300)
+            for row, sign in ((i, 1.0), (j, -1.0)):
+                if self.pose_variable[row] >= 0:
+                    column = 6 * self.pose_variable[row] + 3
+                    jacobian[0, column: column + 3] = sign * direction @ rotations[row] / sigma
+            terms.append((np.array([(distance - self.scale_distance) / sigma]), jacobian))
+        if problem.positions is not None:
+            sigma = float(problem.position_sigma)
+            for row, position in zip(np.asarray(problem.positions[0]).tolist(), np.asarray(problem.positions[1], dtype=np.float64)):
+                jacobian = np.zeros((3, self.size))
+                if self.pose_variable[row] >= 0:
+                    column = 6 * self.pose_variable[row] + 3
+                    jacobian[:, column: column + 3] = rotations[row] / sigma
+                terms.append(((translations[row] - position) / sigma, jacobian))
+        return terms
+
+    def cost(self, state) -> float:
+        residuals, _ = self._residuals(state, False)
+        total = float(self._loss((residuals**2).sum(1)).sum())
+        return total + sum(0.5 * float(r @ r) for r, _ in self._extra_residuals(state))
+
+    def linearise(self, state, weak_point_information: float = 0.0, keep: np.ndarray | None = None) -> dict:
+        """The robustly reweighted normal equations, landmarks kept apart for the Schur complement.
+
+        ``keep``: a mask over the window's observations (``order``) of those that count.
+        """
+        residuals, (d_pose, d_points, d_camera) = self._residuals(state, True)
+        # Iteratively reweighted: each observation's whitened system times the square root of its weight.
+        root_weight = np.sqrt(self._weights((residuals**2).sum(1)))
+        if keep is not None:
+            root_weight = np.where(keep, root_weight, 0.0)
+        r = residuals * root_weight[:, None]
+        scale = (root_weight / self.problem.pixel_sigma)[:, None, None]
+        B = d_points * scale
+        C = d_camera[:, :, self.camera_free] * scale
+        n_camera = len(self.camera_free)
+        U = np.zeros((self.size, self.size))
+        g = np.zeros(self.size)
+        pose_point = np.zeros((0, 6, 3))
+        if self.pose_size:
+            free = self.on_free_pose
+            A = d_pose[free] * scale[free]
+            A_flat, C_flat, r_flat = A.reshape(-1, 6), C[free].reshape(len(free) * 2, n_camera), r[free].reshape(-1)
+            for p in range(self.free_poses):
+                rows = slice(2 * self.pose_bounds[p], 2 * self.pose_bounds[p + 1])
+                block = slice(6 * p, 6 * p + 6)
+                U[block, block] = A_flat[rows].T @ A_flat[rows]
+                if n_camera:
+                    U[block, self.pose_size:] = A_flat[rows].T @ C_flat[rows]
+                g[block] = A_flat[rows].T @ r_flat[rows]
+            U[self.pose_size:, : self.pose_size] = U[: self.pose_size, self.pose_size:].T
+            pose_point = _gram(A, B[free])
+        if n_camera:
+            flat = C.reshape(-1, n_camera)
+            U[self.pose_size:, self.pose_size:] = flat.T @ flat
+            g[self.pose_size:] = flat.T @ r.reshape(-1)
+        for residual, jacobian in self._extra_residuals(state):
+            U += jacobian.T @ jacobian
+            g += jacobian.T @ residual
+        points = len(self.observed_points)
+        V = (self.sum_by_point @ _gram(B, B).reshape(-1, 9)).reshape(points, 3, 3)
+        V += weak_point_information * np.eye(3)
+        g_points = self.sum_by_point @ (B[:, 0, :] * r[:, 0:1] + B[:, 1, :] * r[:, 1:2])
+        camera_point = np.zeros((points, 0, 3))
+        if n_camera:
+            camera_point = (self.sum_by_point @ _gram(C, B).reshape(-1, 3 * n_camera)).reshape(points, n_camera, 3)
+        return {"U": U, "g": g, "V": V, "g_points": g_points, "pose_point": pose_point, "camera_point": camera_point}
+
+    def _pose_schur(self, weighted: np.ndarray, pose_point: np.ndarray) -> np.ndarray:
+        """``sum over landmarks of (E_a V^-1)(E_b)^T`` for every pair of free keyframes ``(a, b)``."""
+        from scipy import sparse
+
+        n, landmarks = self.pose_size, len(self.observed_points)
+        if self.dense_schur:
+            left = np.zeros((self.free_poses, landmarks, 6, 3))
+            right = np.zeros((self.free_poses, landmarks, 6, 3))
+            left[self.free_variable, self.free_point] = weighted
+            right[self.free_variable, self.free_point] = pose_point
+            left = left.transpose(0, 2, 1, 3).reshape(n, 3 * landmarks)
+            right = right.transpose(0, 2, 1, 3).reshape(n, 3 * landmarks)
+            return left @ right.T
+        shape = (n, 3 * landmarks)
+        left = sparse.bsr_matrix((weighted, self.free_point, self.pose_bounds), shape=shape)
+        right = sparse.bsr_matrix((pose_point, self.free_point, self.pose_bounds), shape=shape)
+        return (left @ right.T).toarray()
+
+    def reduced_system(self, system: dict, damping: float):
+        """The Schur complement ``S`` and right-hand side of the damped system (LM: ``H + damping
+        diag(H)``, the diagonal clamped as Ceres does), and the landmark blocks' inverses."""
+        U, V = system["U"], system["V"]
+        S = U.copy()
+        V_damped = V
+        if damping > 0:
+            S[np.diag_indices_from(S)] += damping * np.clip(np.diag(U), _MIN_DIAGONAL, _MAX_DIAGONAL)
+            V_damped = V.copy()
+            diagonal = np.clip(np.diagonal(V, axis1=1, axis2=2), _MIN_DIAGONAL, _MAX_DIAGONAL)
+            V_damped[:, np.arange(3), np.arange(3)] += damping * diagonal
+        V_inverse = np.linalg.inv(V_damped)
+        g_points = system["g_points"]
+        rhs = -system["g"].copy()
+        n = self.pose_size
+        camera_point = system["camera_point"]
+        n_camera = camera_point.shape[1]
+        if n:
+            pose_point = system["pose_point"]
+            weighted = np.matmul(pose_point, V_inverse[self.free_point])  # (free observations, 6, 3)
+            S[:n, :n] -= self._pose_schur(weighted, pose_point)
+            rhs[:n] += (self.sum_free_by_pose @ np.matmul(weighted, g_points[self.free_point][:, :, None])[:, :, 0]).ravel()
+            if n_camera:
+                coupling = np.matmul(weighted, camera_point[self.free_point].transpose(0, 2, 1))  # (., 6, C)
+                pose_camera = (self.sum_free_by_pose @ coupling.reshape(len(coupling), -1)).reshape(n, n_camera)
+                S[:n, n:] -= pose_camera
+                S[n:, :n] -= pose_camera.T
+        if n_camera:
+            weighted_camera = np.matmul(camera_point, V_inverse)  # (L, C, 3)
+            left = weighted_camera.transpose(1, 0, 2).reshape(n_camera, -1)
+            S[n:, n:] -= left @ camera_point.transpose(1, 0, 2).reshape(n_camera, -1).T
+            rhs[n:] += left @ g_points.ravel()
+        return S, rhs, V_inverse
+
+    def step(self, system: dict, damping: float):
+        """The LM step ``(pose and camera step, landmark step, model decrease)``; raises
+        ``np.linalg.LinAlgError`` where the damped system is not positive definite."""
+        from scipy.linalg import cho_factor, cho_solve
+
+        S, rhs, V_inverse = self.reduced_system(system, damping)
+        step = cho_solve(cho_factor(S, check_finite=False), rhs, check_finite=False) if len(rhs) else rhs
+        back = system["g_points"].copy()
+        if self.pose_size:
+            pose_steps = step[: self.pose_size].reshape(-1, 6)[self.free_variable]
+            back += self.sum_free_by_point @ np.matmul(pose_steps[:, None, :], system["pose_point"])[:, 0, :]
+        if system["camera_point"].shape[1]:
+            back += np.matmul(step[self.pose_size:], system["camera_point"])
+        point_step = -np.matmul(V_inverse, back[:, :, None])[:, :, 0]
+        # The linear model's decrease: -g.d - d^T H d / 2 = (-g.d + damping d^T D d) / 2.
+        U, V = system["U"], system["V"]
+        decrease = -0.5 * (system["g"] @ step + np.sum(system["g_points"] * point_step))
+        if damping > 0:
+            decrease += 0.5 * damping * (np.clip(np.diag(U), _MIN_DIAGONAL, _MAX_DIAGONAL) @ step**2)
+            decrease += 0.5 * damping * np.sum(np.clip(np.diagonal(V, axis1=1, axis2=2), _MIN_DIAGONAL, _MAX_DIAGONAL) * point_step**2)
+        return step, point_step, float(decrease)
+
+    def retract(self, state, step: np.ndarray, point_step: np.ndarray):
+        rotations, translations, points, parameters = (array.copy() for array in state)
+        if self.pose_size:
+            free = np.flatnonzero(self.pose_variable >= 0)
+            pose_step = step[: self.pose_size].reshape(-1, 6)
+            translations[free] += np.matmul(rotations[free], pose_step[:, 3:, None])[:, :, 0]
+            rotations[free] = rotations[free] @ _so3_exp(pose_step[:, :3])
+        points[self.observed_points] += point_step
+        parameters[self.camera_free] += step[self.pose_size:]
+        return rotations, translations, points, parameters
+
+
+_blas_pool = None
+
+
+def _one_blas_thread():
+    """A context in which numpy's and scipy's BLAS run on one thread.
+
+    The solver's matrices are small: OpenBLAS's second thread made a step 2.5x slower on the 2-core
+    machine (17.8 against 44 ms for a VAMR window's linearisation and step, measured), as torch's did.
+    """
+    global _blas_pool
+    if _blas_pool is None:
+        importlib.import_module("scipy.linalg")  # scipy's BLAS must be loaded before the controller looks
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:  # a ROS install without pip's requirements: correct, only slower
+            _blas_pool = False
+        else:
+            _blas_pool = ThreadpoolController()
+    return _blas_pool.limit(limits=1, user_api="blas") if _blas_pool else contextlib.nullcontext()
+
+
 def bundle_adjust(problem: WindowProblem) -> WindowSolution:
-    """Refine the window's poses, landmarks and camera by robust Levenberg-Marquardt (GTSAM).
+    """Refine the window's poses, landmarks and camera by robust Levenberg-Marquardt.
 
     Returns the refined values, the marginal covariances asked for, the inlier mask and the
     reprojection RMS before and after. See the module notes for conventions and failure handling.
     """
+    with _one_blas_thread():
+        return _bundle_adjust(problem)
+
+
+def _bundle_adjust(problem: WindowProblem) -> WindowSolution:
     started = time.perf_counter()
     start, poses, fixed, points, keyframe_index, point_index, pixels = _validate(problem)
-    import gtsam
-    from gtsam.symbol_shorthand import K, L, X
-
-    model = problem.calibration.distortion_model
-    fisheye = model == "equidistant"
     free = np.zeros(8, bool)
     free[list(CAMERA_MODES[problem.camera])] = True
-    calibration = _gtsam_calibration(gtsam, model, start)
 
     # Observations whose landmark starts behind its camera cannot be linearised: leave them out.
     start_errors = _reprojection_errors(problem.calibration, poses, points, keyframe_index, point_index, pixels)
     used = np.flatnonzero(np.isfinite(start_errors))
+    window = _Window(problem, start, poses, fixed, points, keyframe_index, point_index, pixels, used)
+    state = (poses[:, :3, :3].copy(), poses[:, :3, 3].copy(), points.copy(), start.copy())
 
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    estimator = gtsam.noiseModel.mEstimator.Cauchy if problem.robust_loss == "cauchy" else gtsam.noiseModel.mEstimator.Huber
-    robust = estimator.Create(problem.robust_threshold_px / problem.pixel_sigma)
-    noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Isotropic.Sigma(2, problem.pixel_sigma))
-    if problem.camera == "fixed":
-        Factor = gtsam.GenericProjectionFactorCal3Fisheye if fisheye else gtsam.GenericProjectionFactorCal3DS2
-        for m in used:
-            graph.add(Factor(pixels[m], noise, X(int(keyframe_index[m])), L(int(point_index[m])), calibration, False, False))
-    else:
-        Factor = gtsam.GeneralSFMFactor2Cal3Fisheye if fisheye else gtsam.GeneralSFMFactor2Cal3DS2
-        for m in used:
-            graph.add(Factor(pixels[m], noise, X(int(keyframe_index[m])), L(int(point_index[m])), K(0)))
-        PriorCalibration = gtsam.PriorFactorCal3Fisheye if fisheye else gtsam.PriorFactorCal3DS2
-        # Pinned parameters and the skew stay at their start values; free ones get no information.
-        sigmas = np.full(9, _PINNED_SIGMA)
-        sigmas[_TANGENT_OF_PARAMETER[free]] = _FREE_SIGMA
-        graph.add(PriorCalibration(K(0), calibration, gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
-        if problem.camera_prior is not None:
-            prior_mean = _gtsam_calibration(gtsam, model, camera_parameters(problem.camera_prior.calibration))
-            information = _to_tangent_information(np.asarray(problem.camera_prior.information, dtype=np.float64), 0.0)
-            information = 0.5 * (information + information.T)
-            # A semi-definite prior (information on some parameters only) is fine: its square root
-            # from the eigen-decomposition has zero rows for the directions it does not inform.
-            eigenvalues, eigenvectors = np.linalg.eigh(information)
-            root = np.sqrt(np.clip(eigenvalues, 0.0, None))[:, None] * eigenvectors.T
-            if eigenvalues.max() > 0:
-                graph.add(PriorCalibration(K(0), prior_mean, gtsam.noiseModel.Gaussian.SqrtInformation(root, False)))
-        values.insert(K(0), calibration)
-    pinned = gtsam.noiseModel.Isotropic.Sigma(6, _PINNED_SIGMA)
-    for k, T in enumerate(poses):
-        values.insert(X(k), gtsam.Pose3(T))
-        if fixed[k]:
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), pinned))
-    for j, point in enumerate(points):
-        values.insert(L(j), point)
-    if problem.scale_pair is not None:
-        i, j = (int(r) for r in problem.scale_pair)
-        distance = float(np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]))
-        graph.add(gtsam.RangeFactorPose3(X(i), X(j), distance, gtsam.noiseModel.Isotropic.Sigma(1, _SCALE_SIGMA * distance)))
-    if problem.positions is not None:
-        position_noise = gtsam.noiseModel.Isotropic.Sigma(3, float(problem.position_sigma))
-        for row, position in zip(np.asarray(problem.positions[0]).tolist(), np.asarray(problem.positions[1], dtype=np.float64)):
-            graph.add(gtsam.GPSFactor(X(int(row)), position, position_noise))
+    # Levenberg-Marquardt with Ceres' damping policy (a step is taken when the cost falls by at least
+    # a thousandth of what the linear model predicted; the damping then shrinks by the model's fidelity).
+    cost = window.cost(state)
+    damping, factor = _LAMBDA_INITIAL, 2.0
+    iterations = 0
+    while iterations < int(problem.max_iterations) and cost > 0:
+        iterations += 1
+        system = window.linearise(state)
+        taken = None
+        while damping < _LAMBDA_MAX:
+            try:
+                step, point_step, decrease = window.step(system, damping)
+            except np.linalg.LinAlgError:
+                step = None
+            if step is not None and np.all(np.isfinite(step)) and decrease > 0:
+                candidate = window.retract(state, step, point_step)
+                new_cost = window.cost(candidate)
+                fidelity = (cost - new_cost) / decrease
+                if np.isfinite(new_cost) and fidelity > _MIN_MODEL_FIDELITY:
+                    damping = max(damping * max(1.0 / 3.0, 1.0 - (2.0 * fidelity - 1.0) ** 3), _LAMBDA_MIN)
+                    factor = 2.0
+                    taken = (candidate, new_cost)
+                    break
+            damping *= factor
+            factor *= 2.0
+        if taken is None:
+            break
+        relative = (cost - taken[1]) / cost
+        state, cost = taken
+        if relative < problem.relative_tolerance:
+            break
 
-    parameters = gtsam.LevenbergMarquardtParams.CeresDefaults()
-    parameters.setMaxIterations(int(problem.max_iterations))
-    parameters.setRelativeErrorTol(float(problem.relative_tolerance))
-    parameters.setAbsoluteErrorTol(0.0)
+    rotations, translations, solved_points, solved_parameters = state
+    solved_parameters = np.where(free, solved_parameters, start)
+    if not np.all(np.isfinite(solved_parameters)) or not np.all(np.isfinite(solved_points)):
+        return _failed(problem, start_errors, "the solve left non-finite values", started)
     try:
-        with _quiet_native_stdout():
-            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, parameters)
-            result = optimizer.optimize()
-        iterations = int(optimizer.iterations())
-    except RuntimeError as error:
-        return _failed(problem, start_errors, f"GTSAM: {' '.join(str(error).split())[:300]}", started)
-
-    solved_parameters = start.copy()
-    if problem.camera != "fixed":
-        fitted = result.atCal3Fisheye(K(0)) if fisheye else result.atCal3DS2(K(0))
-        # The calibration's tangent is the plain difference of parameter vectors.
-        solved_parameters = start + calibration.localCoordinates(fitted)[_TANGENT_OF_PARAMETER]
-        solved_parameters[~free] = start[~free]
-    solved = calibration_from_parameters(solved_parameters, problem.calibration)
-    solved_poses = np.stack([result.atPose3(X(k)).matrix() for k in range(len(poses))])
+        solved = calibration_from_parameters(solved_parameters, problem.calibration)
+    except (BundleAdjustmentInputError, ValueError) as error:
+        return _failed(problem, start_errors, f"the solve left an invalid camera ({error})", started)
+    solved_poses = np.tile(np.eye(4), (len(poses), 1, 1))
+    solved_poses[:, :3, :3], solved_poses[:, :3, 3] = rotations, translations
     solved_poses[fixed] = poses[fixed]
-    solved_points = np.stack([result.atPoint3(L(j)) for j in range(len(points))]) if len(points) else points.copy()
 
     errors = _reprojection_errors(solved, solved_poses, solved_points, keyframe_index, point_index, pixels)
     inliers = errors < problem.robust_threshold_px
@@ -433,34 +743,30 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
     camera_wanted = problem.camera != "fixed" and problem.camera_covariance
     covariance_started = time.thread_time()
     if camera_wanted or problem.covariance_of:
-        try:
-            distance = np.linalg.norm(points[point_index] - poses[keyframe_index, :3, 3], axis=1)
-            landmark_sigma = _LANDMARK_PRIOR_SCALE * max(float(np.median(distance)), 1e-6)
-            with _quiet_native_stdout():
-                try:
-                    marginals = _marginals(gtsam, graph, result, used, errors, len(points), landmark_sigma)
-                except RuntimeError:
-                    # Too poorly conditioned for Cholesky with the weak prior (a whole map of 32
-                    # keyframes, measured): once more with landmarks held to their median distance.
-                    marginals = _marginals(gtsam, graph, result, used, errors, len(points),
-                                           landmark_sigma / _LANDMARK_PRIOR_SCALE)
-            if camera_wanted:
-                tangent = marginals.marginalCovariance(K(0))
-                camera_covariance = tangent[np.ix_(_TANGENT_OF_PARAMETER, _TANGENT_OF_PARAMETER)]
-                camera_covariance[~free] = 0.0
-                camera_covariance[:, ~free] = 0.0
-            for row in problem.covariance_of:
-                row = int(row)
-                if fixed[row]:
-                    pose_covariances[row] = np.zeros((6, 6))
-                    continue
-                # GTSAM orders the Pose3 tangent (omega, v); ours is (rho, theta).
-                order = [3, 4, 5, 0, 1, 2]
-                pose_covariances[row] = marginals.marginalCovariance(X(row))[np.ix_(order, order)]
-        except RuntimeError as error:
-            # An indeterminate system at the solution: the values along its null space are
-            # arbitrary, so none of them is returned.
-            return _failed(problem, start_errors, f"GTSAM: {' '.join(str(error).split())[:300]}", started)
+        distance = np.linalg.norm(points[point_index] - poses[keyframe_index, :3, 3], axis=1)
+        landmark_sigma = _LANDMARK_PRIOR_SCALE * max(float(np.median(distance)), 1e-6)
+        covariance = _marginal_covariance(window, state, np.isfinite(errors[window.order]), landmark_sigma)
+        if covariance is None:
+            # Too poorly conditioned with the weak prior (a whole map, measured): once more with the
+            # landmarks held to their median distance.
+            covariance = _marginal_covariance(window, state, np.isfinite(errors[window.order]), landmark_sigma / _LANDMARK_PRIOR_SCALE)
+        if covariance is None:
+            # An indeterminate system at the solution: the values along its null space are arbitrary,
+            # so none of them is returned.
+            return _failed(problem, start_errors, "Indeterminate system: the window does not determine every "
+                           "free pose and camera parameter (a keyframe with too few landmarks?)", started)
+        if camera_wanted:
+            camera_covariance = np.zeros((8, 8))
+            camera_covariance[np.ix_(window.camera_free, window.camera_free)] = covariance[window.pose_size:, window.pose_size:]
+        for row in problem.covariance_of:
+            row = int(row)
+            if fixed[row]:
+                pose_covariances[row] = np.zeros((6, 6))
+                continue
+            # The solver orders a pose's tangent (omega, v); ours is (rho, theta).
+            block = slice(6 * window.pose_variable[row], 6 * window.pose_variable[row] + 6)
+            order = [3, 4, 5, 0, 1, 2]
+            pose_covariances[row] = covariance[block, block][np.ix_(order, order)]
 
     return WindowSolution(
         poses=solved_poses,
@@ -480,49 +786,30 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
     )
 
 
-@contextlib.contextmanager
-def _quiet_native_stdout():
-    """Send the C++ library's standard output to /dev/null for the block.
+def _marginal_covariance(window: _Window, state, keep: np.ndarray, landmark_sigma: float) -> np.ndarray | None:
+    """The marginal covariance of the pose and camera variables at the solution, or None where the
+    system is indeterminate.
 
-    GTSAM's GeneralSFMFactor prints a line to ``std::cout`` for every landmark that a trial step moves
-    behind a camera (hundreds per replay on the fisheye bag), which it then handles itself.
+    An observation behind its camera at the solution carries no information, so it is left out. A
+    landmark the data cannot place (a track of nearly parallel rays that ran off to kilometres, or one
+    left with a single view) would make the system indeterminate: a weak prior (``landmark_sigma``,
+    100 times the median viewing distance) holds it without informing the rest. The solve itself has
+    no such prior, so noiseless data is fitted exactly.
     """
+    system = window.linearise(state, weak_point_information=1.0 / landmark_sigma**2, keep=keep)
     try:
-        sys.stdout.flush()
-        saved = os.dup(1)
-    except (OSError, ValueError, AttributeError):  # no file descriptor 1 (an embedding host): leave it
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as devnull:
-            os.dup2(devnull.fileno(), 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-
-
-def _marginals(gtsam, graph, result, used: np.ndarray, errors: np.ndarray, landmarks: int, landmark_sigma: float):
-    """``gtsam.Marginals`` at the solution.
-
-    GTSAM zeroes the Jacobian of an observation behind its camera; such rows carry no information,
-    so they are left out (which also keeps GTSAM from printing a line for each). A landmark the data
-    cannot place (a track of nearly parallel rays that ran off to kilometres, or one left with a
-    single view) would make the system indeterminate: a weak prior (``landmark_sigma``, 100 times
-    the median viewing distance) holds it without informing the rest. The solve itself has no such
-    prior, so noiseless data is fitted exactly.
-    """
-    from gtsam.symbol_shorthand import L
-
-    kept = gtsam.NonlinearFactorGraph()
-    for position in np.flatnonzero(np.isfinite(errors[used])):
-        kept.add(graph.at(int(position)))
-    for position in range(len(used), graph.size()):
-        kept.add(graph.at(position))
-    weak = gtsam.noiseModel.Isotropic.Sigma(3, landmark_sigma)
-    for j in range(landmarks):
-        kept.add(gtsam.PriorFactorPoint3(L(j), result.atPoint3(L(j)), weak))
-    return gtsam.Marginals(kept, result)
+        S, _, _ = window.reduced_system(system, 0.0)
+    except np.linalg.LinAlgError:
+        return None
+    if not len(S):
+        return S
+    # Indeterminate directions show as (relative) zero eigenvalues of the diagonally scaled system.
+    diagonal = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    scaled = S / diagonal[:, None] / diagonal[None, :]
+    if not np.all(np.isfinite(scaled)) or np.linalg.eigvalsh(0.5 * (scaled + scaled.T)).min() < _INDETERMINATE:
+        return None
+    covariance = np.linalg.inv(scaled) / diagonal[:, None] / diagonal[None, :]
+    return 0.5 * (covariance + covariance.T)
 
 
 def _rms(errors: np.ndarray) -> float:

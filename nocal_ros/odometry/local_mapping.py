@@ -108,9 +108,10 @@ class MappingSettings:
 class LocalMapping:
     """Runs the mapping of each submitted keyframe in a worker thread (see the module notes).
 
-    GTSAM holds Python's global interpreter lock for a whole solve (measured: a thread beside it
-    stalls; BENCHMARKS.md), so in a thread alone a bundle adjustment would still block tracking. The
-    worker thread therefore hands each solve to a worker process and waits for it without the lock.
+    A solve is Python and numpy on small arrays, which hold Python's global interpreter lock for most
+    of their time (GTSAM, the solver before, held it for a whole solve: a thread beside it stalled;
+    BENCHMARKS.md), so in a thread a bundle adjustment would slow tracking down. The worker thread
+    therefore hands each solve to a worker process and waits for it without the lock.
     When keyframes arrive faster than they are mapped, the waiting ones are all triangulated and one
     bundle adjustment covers them (counted in ``merged``), so mapping never falls further behind.
     """
@@ -130,8 +131,8 @@ class LocalMapping:
         self._thread: threading.Thread | None = None
         self._solver: Any = None
         if not synchronous:
-            # Start the solver process now, before the first keyframe: spawning it and importing GTSAM
-            # would otherwise delay the first bundle adjustment (seconds under load, measured).
+            # Start the solver process now, before the first keyframe: spawning it and importing the
+            # solver would otherwise delay the first bundle adjustment (seconds under load, measured).
             self._solver_pool().submit(_import_solver)
 
     # -- thread handling ---------------------------------------------------------------------------
@@ -371,7 +372,7 @@ class LocalMapping:
             point_index=point_index, pixels=pixels, camera=freedom, camera_prior=prior,
             robust_threshold_px=self.settings.pixel_threshold, scale_pair=scale_pair,
             relative_tolerance=self.settings.relative_tolerance,
-            # A whole map's solve is too poorly conditioned for GTSAM's covariance now and then (the
+            # A whole map's solve is too poorly conditioned for a covariance now and then (the
             # fisheye bag's 66 keyframes, measured), and the end of a replay has no use for it.
             camera_covariance=not whole_map, positions=measured,
         )
@@ -426,7 +427,7 @@ class LocalMapping:
 
 
 def _import_solver() -> None:
-    import nocal_ros.odometry.bundle_adjustment  # noqa: F401 - loads GTSAM in the solver process
+    import nocal_ros.odometry.bundle_adjustment  # noqa: F401 - loads the solver in its process
 
 
 def window_information(covariance: np.ndarray, prior_information: np.ndarray | None) -> np.ndarray:
