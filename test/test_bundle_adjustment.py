@@ -444,3 +444,27 @@ def test_an_observation_given_twice_counts_twice():
     scale = np.sqrt(np.outer(np.diag(once.camera_covariance), np.diag(once.camera_covariance))) + 1e-300
     assert np.abs((twice.camera_covariance - 0.5 * once.camera_covariance) / scale).max() < 1e-3
     assert np.abs(np.diag(twice.camera_covariance)[:6] / np.diag(once.camera_covariance)[:6] - 0.5).max() < 1e-4
+
+
+def test_without_threadpoolctl_the_solve_is_the_same(monkeypatch):
+    """threadpoolctl only keeps BLAS on one thread (speed); a ROS install without it solves the same."""
+    import builtins
+
+    import nocal_ros.odometry.bundle_adjustment as module
+
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=25, landmarks=40)
+    problem = WindowProblem(camera, poses, fixed, points, kf, pt, pixels + 0.3)
+    limited = bundle_adjust(problem)
+    real_import = builtins.__import__
+
+    def no_threadpoolctl(name, *args, **kwargs):
+        if name == "threadpoolctl":
+            raise ImportError("no module named threadpoolctl")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(module, "_blas_pool", None)
+    monkeypatch.setattr(builtins, "__import__", no_threadpoolctl)
+    unlimited = bundle_adjust(problem)
+    assert module._blas_pool is False
+    np.testing.assert_allclose(unlimited.poses, limited.poses, atol=1e-12)
+    np.testing.assert_allclose(unlimited.camera_covariance, limited.camera_covariance, rtol=1e-9)
