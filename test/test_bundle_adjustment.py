@@ -468,3 +468,22 @@ def test_without_threadpoolctl_the_solve_is_the_same(monkeypatch):
     assert module._blas_pool is False
     np.testing.assert_allclose(unlimited.poses, limited.poses, atol=1e-12)
     np.testing.assert_allclose(unlimited.camera_covariance, limited.camera_covariance, rtol=1e-9)
+
+
+def test_a_free_keyframe_that_sees_all_its_landmarks_behind_it_stays_and_the_rest_is_solved():
+    camera, poses, fixed, points, kf, pt, pixels = make_window("plumb_bob", seed=27)
+    rng = np.random.default_rng(28)
+    start, poses0, points0 = perturbed_start(camera, poses, fixed, points, rng, focal_error=0.05)
+    turned = poses0[5].copy()
+    turned[:3, :3] = turned[:3, :3] @ Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()  # facing away
+    seen = kf == 5
+    problem = WindowProblem(start, np.concatenate([poses0, turned[None]]), np.append(fixed, False), points0,
+                            np.concatenate([kf, np.full(seen.sum(), len(poses))]), np.concatenate([pt, pt[seen]]),
+                            np.concatenate([pixels, pixels[seen]]))
+    solution = bundle_adjust(problem)
+    assert solution.success, solution.message
+    np.testing.assert_array_equal(solution.poses[-1], turned)
+    assert not solution.inliers[len(kf):].any()
+    assert abs(solution.calibration.fx / camera.fx - 1) < 1e-3  # noiseless pixels: the rest is solved
+    problem.covariance_of = (len(poses),)
+    assert not bundle_adjust(problem).success

@@ -407,9 +407,12 @@ class _Window:
         self.problem = problem
         self.model = problem.calibration.distortion_model
         self.camera_free = np.array(CAMERA_MODES[problem.camera], dtype=np.int64)
+        # A free keyframe none of whose observations can be used (all behind it at the start) has
+        # nothing to move it: it stays where it is, as a fixed one.
+        movable = ~fixed & np.isin(np.arange(len(poses)), keyframe_index[used])
         self.pose_variable = np.full(len(poses), -1)
-        self.pose_variable[~fixed] = np.arange(int((~fixed).sum()))
-        self.free_poses = int((~fixed).sum())
+        self.pose_variable[movable] = np.arange(int(movable.sum()))
+        self.free_poses = int(movable.sum())
         self.pose_size = 6 * self.free_poses
         self.size = self.pose_size + len(self.camera_free)
         order = used[np.lexsort((point_index[used], keyframe_index[used]))]
@@ -771,6 +774,9 @@ def _bundle_adjust(problem: WindowProblem) -> WindowSolution:
             if fixed[row]:
                 pose_covariances[row] = np.zeros((6, 6))
                 continue
+            if window.pose_variable[row] < 0:
+                return _failed(problem, start_errors, f"Indeterminate system: keyframe row {row} has no observation "
+                               "in front of it, and its covariance was asked for", started)
             # The solver orders a pose's tangent (omega, v); ours is (rho, theta).
             block = slice(6 * window.pose_variable[row], 6 * window.pose_variable[row] + 6)
             order = [3, 4, 5, 0, 1, 2]
