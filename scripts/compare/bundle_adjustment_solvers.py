@@ -1,4 +1,6 @@
-"""Which solver runs the VO's windowed bundle adjustment: GTSAM, pycolmap (Ceres) or scipy, measured.
+"""Which solver runs the VO's windowed bundle adjustment: the module's own (since 2026-12-02), GTSAM (the
+module's before), pycolmap (Ceres) or scipy, measured. GTSAM and pycolmap come with the compare extra
+(requirements-compare.txt).
 
 Builds windowed BA problems like the VO backend's: K keyframes along an arm-like path (a few cm
 apart, a degree or two of rotation each), L landmarks at 1-5 m, each tracked by 3-10 consecutive
@@ -18,7 +20,7 @@ after the solve), and the extra CPU cost of the camera's marginal covariance.
 
     python scripts/compare/bundle_adjustment_solvers.py --model plumb_bob --start cold --loss cauchy
     python scripts/compare/bundle_adjustment_solvers.py --model equidistant --start warm --loss cauchy
-    (solvers: module = nocal_ros.odometry.bundle_adjustment, gtsam-lm, gtsam-lm-ceres, gtsam-isam2,
+    (solvers: module = nocal_ros.odometry.bundle_adjustment (the VO's own solver), gtsam-lm, gtsam-lm-ceres, gtsam-isam2,
     pycolmap, scipy-trf; --solvers picks some)
 """
 
