@@ -357,7 +357,11 @@ def _project(parameters: np.ndarray, model: str, rotations: np.ndarray, translat
 
 
 def _so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(N, 3, 3)`` of rotation vectors ``(N, 3)`` (Rodrigues)."""
+    """Rotation matrices ``(N, 3, 3)`` of rotation vectors ``(N, 3)`` (Rodrigues; Taylor below 1e-8 rad).
+
+    ``geometry.so3_exp`` for a batch: not imported from there, because ``nocal_ros.geometry`` loads torch,
+    which the solver's worker process must not (1.8 s before its first solve, BENCHMARKS.md).
+    """
     angle = np.linalg.norm(rotation_vectors, axis=1)
     small = angle < 1e-8
     safe = np.where(small, 1.0, angle)
@@ -571,7 +575,10 @@ class _Window:
         camera_point = np.zeros((points, 0, 3))
         if n_camera:
             camera_point = (self.sum_by_point @ _gram(C, B).reshape(-1, 3 * n_camera)).reshape(points, n_camera, 3)
-        return {"U": U, "g": g, "V": V, "g_points": g_points, "pose_point": pose_point, "camera_point": camera_point}
+        # Levenberg-Marquardt damps by the diagonal, clamped as Ceres does (the same for every damping tried).
+        return {"U": U, "g": g, "V": V, "g_points": g_points, "pose_point": pose_point, "camera_point": camera_point,
+                "U_diagonal": np.clip(np.diag(U), _MIN_DIAGONAL, _MAX_DIAGONAL),
+                "V_diagonal": np.clip(np.diagonal(V, axis1=1, axis2=2), _MIN_DIAGONAL, _MAX_DIAGONAL)}
 
     def _pose_schur(self, weighted: np.ndarray, pose_point: np.ndarray) -> np.ndarray:
         """``sum over landmarks of (E_a V^-1)(E_b)^T`` for every pair of free keyframes ``(a, b)``."""
@@ -593,15 +600,14 @@ class _Window:
 
     def reduced_system(self, system: dict, damping: float):
         """The Schur complement ``S`` and right-hand side of the damped system (LM: ``H + damping
-        diag(H)``, the diagonal clamped as Ceres does), and the landmark blocks' inverses."""
+        diag(H)``, the linearisation's clamped diagonal), and the landmark blocks' inverses."""
         U, V = system["U"], system["V"]
         S = U.copy()
         V_damped = V
         if damping > 0:
-            S[np.diag_indices_from(S)] += damping * np.clip(np.diag(U), _MIN_DIAGONAL, _MAX_DIAGONAL)
+            S[np.diag_indices_from(S)] += damping * system["U_diagonal"]
             V_damped = V.copy()
-            diagonal = np.clip(np.diagonal(V, axis1=1, axis2=2), _MIN_DIAGONAL, _MAX_DIAGONAL)
-            V_damped[:, np.arange(3), np.arange(3)] += damping * diagonal
+            V_damped[:, np.arange(3), np.arange(3)] += damping * system["V_diagonal"]
         V_inverse = np.linalg.inv(V_damped)
         g_points = system["g_points"]
         rhs = -system["g"].copy()
@@ -640,11 +646,10 @@ class _Window:
             back += np.matmul(step[self.pose_size:], system["camera_point"])
         point_step = -np.matmul(V_inverse, back[:, :, None])[:, :, 0]
         # The linear model's decrease: -g.d - d^T H d / 2 = (-g.d + damping d^T D d) / 2.
-        U, V = system["U"], system["V"]
         decrease = -0.5 * (system["g"] @ step + np.sum(system["g_points"] * point_step))
         if damping > 0:
-            decrease += 0.5 * damping * (np.clip(np.diag(U), _MIN_DIAGONAL, _MAX_DIAGONAL) @ step**2)
-            decrease += 0.5 * damping * np.sum(np.clip(np.diagonal(V, axis1=1, axis2=2), _MIN_DIAGONAL, _MAX_DIAGONAL) * point_step**2)
+            decrease += 0.5 * damping * (system["U_diagonal"] @ step**2)
+            decrease += 0.5 * damping * np.sum(system["V_diagonal"] * point_step**2)
         return step, point_step, float(decrease)
 
     def retract(self, state, step: np.ndarray, point_step: np.ndarray):
@@ -693,8 +698,6 @@ def bundle_adjust(problem: WindowProblem) -> WindowSolution:
 def _bundle_adjust(problem: WindowProblem) -> WindowSolution:
     started = time.perf_counter()
     start, poses, fixed, points, keyframe_index, point_index, pixels = _validate(problem)
-    free = np.zeros(8, bool)
-    free[list(CAMERA_MODES[problem.camera])] = True
 
     # Observations whose landmark starts behind its camera cannot be linearised: leave them out.
     start_errors = _reprojection_errors(problem.calibration, poses, points, keyframe_index, point_index, pixels)
@@ -734,8 +737,7 @@ def _bundle_adjust(problem: WindowProblem) -> WindowSolution:
         if relative < problem.relative_tolerance:
             break
 
-    rotations, translations, solved_points, solved_parameters = state
-    solved_parameters = np.where(free, solved_parameters, start)
+    rotations, translations, solved_points, solved_parameters = state  # only the mode's parameters moved
     if not np.all(np.isfinite(solved_parameters)) or not np.all(np.isfinite(solved_points)):
         return _failed(problem, start_errors, "the solve left non-finite values", started)
     try:
