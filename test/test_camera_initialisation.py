@@ -100,3 +100,24 @@ def test_initialisation_schedule_and_the_uncalibrated_camera_waits_for_it():
     given = OnlineCamera(prior_calibration(160, 120), "file")
     given.keyframes = 12
     assert LocalMapping(given, MappingSettings(), synchronous=True).camera_freedom() == "radial"
+
+
+def test_a_merged_batch_takes_the_initialisation_any_of_its_keyframes_reached():
+    """Mapping behind a real-time stream merges the waiting keyframes into one batch: a scheduled count
+    inside the batch still initialises the camera (the map reaching 7 keyframes in one batch used to
+    skip the one at 6), and a batch that reaches none does not."""
+    from nocal_ros.odometry.map import LocalMap
+
+    camera = OnlineCamera(prior_calibration(160, 120), "guess")
+    mapping = LocalMapping(camera, MappingSettings(camera_initialisation=(6, 10), camera_refinement_interval=0),
+                           synchronous=True)
+    asked: list[bool] = []
+    mapping.bundle_adjust = lambda local_map, initialise=False: asked.append(initialise)
+    local_map = LocalMap()
+    keyframes = [local_map.add_keyframe(k, k, np.eye(4), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+                 for k in range(12)]
+    mapping._run([(local_map, keyframe) for keyframe in keyframes[4:7]])  # the map's 5th to 7th keyframes
+    mapping._run([(local_map, keyframes[7])])
+    mapping._run([(local_map, keyframe) for keyframe in keyframes[8:12]])  # 9th to 12th: 10 inside
+    assert asked == [True, False, True]
+    assert mapping.merged == 2 + 3
