@@ -236,3 +236,40 @@ def test_arm_poses_between_keyframes_make_the_final_trajectory_metric(sequence):
     aligned = evaluation.absolute_pose_error(final, truth, correct_scale=True)
     print(f"APE SE(3) {metric['rmse']:.4f} m, Sim(3) scale {aligned['scale']:.4f}")
     assert abs(aligned["scale"] - 1.0) < 0.03 and metric["rmse"] < 0.02
+
+
+def test_tracking_makes_keyframes_only_when_it_needs_them_while_local_mapping_is_behind(sequence, monkeypatch):
+    """Local mapping held in its first solve (a camera initialisation takes seconds in real time):
+    keyframes for parallax stop once two wait, so far fewer pile up than without the limit, and tracking
+    goes on; released, mapping takes them all up."""
+    import threading
+
+    from nocal_ros.odometry.calibration import OnlineCamera
+    from nocal_ros.odometry.local_mapping import LocalMapping
+    from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry
+
+    release = threading.Event()
+    solve = LocalMapping._solve
+
+    def held_solve(self, problem, *args, **kwargs):
+        release.wait(60)
+        return solve(self, problem, *args, **kwargs)
+
+    monkeypatch.setattr(LocalMapping, "_solve", held_solve)
+    made = {}
+    for limit in (2, 10_000):
+        release.clear()
+        vo = VisualOdometry(OnlineCamera(CAMERA, "file"), TrackingSettings(max_waiting_keyframes=limit))
+        states, waiting = [], []
+        for k in range(40):
+            states.append(vo.process(k, int(sequence.stamps_ns[k]), sequence.images[k]).state)
+            waiting.append(vo.mapping.waiting)
+        release.set()
+        assert vo.mapping.wait(60)
+        vo.close()
+        made[limit] = (len(vo.map.keyframes), max(waiting), states)
+        print(f"limit {limit}: {made[limit][0]} keyframes, at most {made[limit][1]} waiting")
+    throttled, free = made[2], made[10_000]
+    assert "lost" not in throttled[2] and throttled[2].count("ok") >= 30
+    assert throttled[1] <= 4 < free[1]
+    assert throttled[0] < free[0]
