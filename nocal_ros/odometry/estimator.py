@@ -270,6 +270,12 @@ class OdometryEstimator:
         self.model: PoseModel
         self._runner: PoseRunner
         self._load(checkpoint)
+        if method == "vo":
+            # Tracking's first map is refined at once, in this process: its solver's imports belong here,
+            # not in the middle of a stream.
+            from nocal_ros.odometry.bundle_adjustment import load_libraries
+
+            load_libraries()
         self.reset()
 
     # -- model -------------------------------------------------------------------------------------
