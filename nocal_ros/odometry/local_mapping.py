@@ -124,6 +124,8 @@ class LocalMapping:
         self.solve_milliseconds: deque[float] = deque(maxlen=500)
         self.failures = 0
         self.merged = 0
+        #: Solver processes started again after one died.
+        self.solver_restarts = 0
         self.initialisation_report: list[tuple[float, float, float]] = []
         self._queue: queue.Queue = queue.Queue()
         self._idle = threading.Event()
@@ -208,13 +210,27 @@ class LocalMapping:
         if self.synchronous:
             solution = solve(problem)
         else:
-            solution = self._solver_pool().submit(solve, problem).result()
+            solution = self._solve_in_process(solve, problem)
         if hypotheses:
             solution, self.initialisation_report = solution
         elif rebuild:
             solution = solution[0]
         self.solve_milliseconds.append((time.perf_counter() - start) * 1e3)
         return solution
+
+    def _solve_in_process(self, solve: Any, problem: Any) -> Any:
+        """``solve(problem)`` in the solver process; a process that died (killed, out of memory) is
+        replaced once, so that mapping goes on instead of failing every later keyframe."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return self._solver_pool().submit(solve, problem).result()
+        except BrokenProcessPool:
+            self.solver_restarts += 1
+            log.warning("local mapping: the bundle adjustment's process died; starting a new one")
+            self._solver.shutdown(wait=False, cancel_futures=True)
+            self._solver = None
+            return self._solver_pool().submit(solve, problem).result()
 
     def _solver_pool(self) -> Any:
         if self._solver is None:
@@ -436,7 +452,10 @@ class LocalMapping:
 
 
 def _import_solver() -> None:
-    import nocal_ros.odometry.bundle_adjustment  # noqa: F401 - loads the solver in its process
+    """Load the solver and its libraries in the solver process."""
+    from nocal_ros.odometry.bundle_adjustment import load_libraries
+
+    load_libraries()
 
 
 def window_information(covariance: np.ndarray, prior_information: np.ndarray | None) -> np.ndarray:

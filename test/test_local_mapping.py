@@ -1,0 +1,31 @@
+"""Local mapping's worker process: solves run there, and a process that dies is replaced."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+from test_camera_initialisation import noisy_window, problem_through
+
+from nocal_ros.odometry.calibration import OnlineCamera
+from nocal_ros.odometry.local_mapping import LocalMapping
+
+
+def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
+    """The solver process killed (as the out-of-memory killer would) between two solves: the next solve
+    starts a new process, gives the same answer as before, and says so in ``solver_restarts``."""
+    camera, poses, points, keyframe_index, point_index, pixels = noisy_window(3)
+    problem = problem_through(camera, poses, points, keyframe_index, point_index, pixels)
+    mapping = LocalMapping(OnlineCamera(camera, "file"), synchronous=False)
+    try:
+        first = mapping._solve(problem)
+        (pid,) = list(mapping._solver._processes)
+        os.kill(pid, signal.SIGKILL)
+        again = mapping._solve(problem)
+        assert first.success and again.success
+        np.testing.assert_allclose(again.poses, first.poses, atol=1e-12)
+        assert mapping.solver_restarts == 1
+        assert pid not in mapping._solver._processes
+    finally:
+        mapping.close()
