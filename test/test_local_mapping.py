@@ -5,16 +5,20 @@ from __future__ import annotations
 import os
 import signal
 
+from concurrent.futures.process import BrokenProcessPool
+
 import numpy as np
+import pytest
 from test_camera_initialisation import noisy_window, problem_through
 
 from nocal_ros.odometry.calibration import OnlineCamera
-from nocal_ros.odometry.local_mapping import LocalMapping
+from nocal_ros.odometry.local_mapping import SOLVER_RESTARTS, LocalMapping
 
 
 def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
     """The solver process killed (as the out-of-memory killer would) between two solves: the next solve
-    starts a new process, gives the same answer as before, and says so in ``solver_restarts``."""
+    starts a new process, gives the same answer as before, and says so in ``solver_restarts``; a
+    process killed after the last restart allowed fails the solve."""
     camera, poses, points, keyframe_index, point_index, pixels = noisy_window(3)
     problem = problem_through(camera, poses, points, keyframe_index, point_index, pixels)
     mapping = LocalMapping(OnlineCamera(camera, "file"), synchronous=False)
@@ -27,5 +31,11 @@ def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
         np.testing.assert_allclose(again.poses, first.poses, atol=1e-12)
         assert mapping.solver_restarts == 1
         assert pid not in mapping._solver._processes
+        # One that keeps dying is not replaced for ever: past SOLVER_RESTARTS the solve fails.
+        mapping.solver_restarts = SOLVER_RESTARTS
+        (pid,) = list(mapping._solver._processes)
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(BrokenProcessPool):
+            mapping._solve(problem)
     finally:
         mapping.close()

@@ -52,6 +52,8 @@ log = logging.getLogger(__name__)
 #: taken: the first keyframes of a narrow camera (46 degrees) chose a focal length 68 % short, at a
 #: standard deviation of 55 %, and the windows that followed built on it (measured).
 INITIALISATION_FOCAL_STD = 0.15
+#: Solver processes local mapping starts again after one died, at most (then its solves fail, logged).
+SOLVER_RESTARTS = 3
 #: Keyframes each keyframe is searched from at the end of a replay (:func:`search_by_projection`).
 SEARCH_SOURCES = 8
 #: Fewest degrees between the two rays of a new landmark (smaller angles give depth from noise).
@@ -220,12 +222,15 @@ class LocalMapping:
 
     def _solve_in_process(self, solve: Any, problem: Any) -> Any:
         """``solve(problem)`` in the solver process; a process that died (killed, out of memory) is
-        replaced once, so that mapping goes on instead of failing every later keyframe."""
+        replaced, up to :data:`SOLVER_RESTARTS` times, so that mapping goes on instead of failing every
+        later keyframe."""
         from concurrent.futures.process import BrokenProcessPool
 
         try:
             return self._solver_pool().submit(solve, problem).result()
         except BrokenProcessPool:
+            if self.solver_restarts >= SOLVER_RESTARTS:
+                raise  # one that dies again and again is a fault to report, not to hide
             self.solver_restarts += 1
             log.warning("local mapping: the bundle adjustment's process died; starting a new one")
             self._solver.shutdown(wait=False, cancel_futures=True)
