@@ -229,8 +229,10 @@ def test_diagnostics_report_latency_rate_drops_model_and_calibration(ros, frames
     values = values_of(status)
     assert values["model_id"].startswith("model.safetensors@")
     for key in ("latency_ms_median", "rate_hz", "delay_s_median", "odometry_age_s", "frames_dropped_stale",
-                "estimator_nonfinite_skipped", "tracking_ms_median", "bundle_adjustment_ms_median"):
+                "estimator_nonfinite_skipped", "tracking_ms_median", "bundle_adjustment_ms_median",
+                "mapping_keyframes_merged", "mapping_failed_windows", "mapping_solver_restarts"):
         assert key in values
+    assert values["mapping_solver_restarts"] == "0"
     assert float(values["latency_ms_median"]) > 0
     # The calibration status issue 11 asks for, and where the camera comes from.
     assert (values["calibration_state"], values["calibration_source"]) == ("prior", "model")

@@ -473,6 +473,15 @@ class OdometryEstimator:
         vo = self._vo
         return 0 if vo is None else int(vo.mapping.merged)
 
+    def mapping_status(self) -> dict[str, int]:
+        """Local mapping's counts since the first frame: keyframes merged into a later solve, windows it
+        could not solve (left as they were), and solver processes started again after one died."""
+        vo = self._vo
+        if vo is None:
+            return {"keyframes_merged": 0, "failed_windows": 0, "solver_restarts": 0}
+        return {"keyframes_merged": int(vo.mapping.merged), "failed_windows": int(vo.mapping.failures),
+                "solver_restarts": int(vo.mapping.solver_restarts)}
+
     def wait_for_mapping(self, timeout: float | None = None) -> bool:
         """Block until local mapping has taken every submitted keyframe; False on timeout."""
         vo = self._vo

@@ -403,6 +403,7 @@ class OdometryNode(Node):
             **{f"estimator_{k}": v for k, v in vars(self.estimator.counters).items()},
             **{f"calibration_{k}": ("" if v is None else v) for k, v in calibration.items()},
             **vo_timing_values(self.estimator.timings()),
+            **{f"mapping_{k}": v for k, v in self.estimator.mapping_status().items()},
             "calibration_file": str(self.calibration_path),
             "camera_info_failures": self._camera_info_failures,
             "arm_pose_source": self.arm_pose_source,
