@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-
 from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np

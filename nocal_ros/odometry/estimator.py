@@ -470,8 +470,7 @@ class OdometryEstimator:
     @property
     def keyframes_merged(self) -> int:
         """Keyframes whose bundle adjustment local mapping folded into a later one (it fell behind)."""
-        vo = self._vo
-        return 0 if vo is None else int(vo.mapping.merged)
+        return self.mapping_status()["keyframes_merged"]
 
     def mapping_status(self) -> dict[str, int]:
         """Local mapping's counts since the first frame: keyframes merged into a later solve, windows it
