@@ -11,8 +11,9 @@ landmarks. It starts from one of:
 
 Each windowed bundle adjustment refines it and returns the marginal covariance of its parameters.
 The information that the keyframes leaving the window contributed is kept as a prior for the next
-windows (see :meth:`OnlineCamera.update`), so the estimate converges over the stream rather than
-forgetting everything older than the window: that is the online self-calibration. ``state`` is
+windows, about the estimate of the window they left (see :meth:`OnlineCamera.update` and
+:meth:`OnlineCamera.prior`), so the estimate converges over the stream rather than forgetting
+everything older than the window: that is the online self-calibration. ``state`` is
 ``"prior"`` until the first update, ``"converging"``, then ``"converged"`` once the focal length's
 standard deviation is below :data:`CONVERGED_FOCAL_STD` of its value.
 """
@@ -64,7 +65,7 @@ PRINCIPAL_POINT_ANCHOR_STD = 0.05
 def anchored_prior(camera: "OnlineCamera", initial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The camera prior of the next window: ``(mean parameters (8,), information (8, 8))``.
 
-    The information carried from earlier windows, about the current estimate (``initial``: only what was
+    The information carried from earlier windows, about their estimates (``initial``: only what was
     known before any window, about the starting camera: for a camera initialisation over the whole map,
     which holds the carried windows' observations itself); for a camera that was not given calibrated,
     combined with :data:`PRINCIPAL_POINT_ANCHOR_STD` about the image centre.
@@ -72,8 +73,10 @@ def anchored_prior(camera: "OnlineCamera", initial: bool = False) -> tuple[np.nd
     from nocal_ros.odometry.bundle_adjustment import camera_parameters
 
     calibration = camera.initial_calibration if initial else camera.calibration
-    mean = camera_parameters(calibration)
-    information = camera.initial_information if initial else camera.prior_information
+    if initial:
+        mean, information = camera_parameters(calibration), camera.initial_information
+    else:
+        mean, information = camera.prior()
     if camera.given:
         return mean, information
     anchor = np.zeros_like(information)
@@ -159,10 +162,30 @@ class OnlineCamera:
         self.covariance: np.ndarray | None = None
         self.initial_calibration = calibration
         self.initial_information: np.ndarray = initial_information(calibration, source)
-        self.prior_information: np.ndarray = self.initial_information
+        self._carry_from_start()
         self.given = source == "file"
         self.updates = 0
         self.keyframes = 0
+
+    def _carry_from_start(self) -> None:
+        from nocal_ros.odometry.bundle_adjustment import camera_parameters
+
+        self.prior_information: np.ndarray = self.initial_information
+        # The information-weighted sum of the estimates the carried information is about.
+        self._prior_weighted = self.initial_information @ camera_parameters(self.initial_calibration)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the windows so far tell the next one: ``(mean parameters (8,), information (8, 8))``.
+
+        The mean is the information-weighted mean of the estimates the carried information was gained
+        about (the starting camera's, and each window's when its oldest keyframe left it), not the
+        latest window's estimate: centred on the latest estimate, the prior let a keyframe's pull move
+        the camera once in every window that held it, and the windows walked the camera away from the
+        initialisation over the stream (measured: heldout_160's focal length 0.2 % -> 1.6 % off in the
+        last 40 frames, 0.2 % with this mean).
+        """
+        with self._lock:
+            return np.linalg.solve(self.prior_information, self._prior_weighted), self.prior_information
 
     @property
     def calibration(self) -> CameraCalibration:
@@ -198,19 +221,23 @@ class OnlineCamera:
 
         ``window_information``: the information about the camera that the window's observations alone
         gave (the posterior's minus the prior's). The share that leaves with the oldest keyframe
-        (``1 - kept_share``) is added to the prior of the next windows: counting the window's
-        observations only once, since the next window holds the rest of them again.
+        (``1 - kept_share``) is added to the prior of the next windows, about this window's estimate:
+        counting the window's observations only once, since the next window holds the rest of them
+        again.
         ``initialisation``: the solve covered every keyframe the carried information came from, so it
         replaces that information instead of adding to it.
         """
+        from nocal_ros.odometry.bundle_adjustment import camera_parameters
+
         with self._lock:
             self._calibration = calibration
             self.covariance = covariance
             if initialisation:
-                self.prior_information = self.initial_information
+                self._carry_from_start()
             if window_information is not None:
                 gained = (1.0 - float(kept_share)) * window_information
                 self.prior_information = self.prior_information + gained
+                self._prior_weighted = self._prior_weighted + gained @ camera_parameters(calibration)
             self.updates += 1
             self.source = "online"
 
@@ -222,7 +249,7 @@ class OnlineCamera:
             self.covariance = None
             self.initial_calibration = calibration
             self.initial_information = initial_information(calibration, source)
-            self.prior_information = self.initial_information
+            self._carry_from_start()
             self.given = source == "file"
             self.updates = 0
             self.keyframes = 0

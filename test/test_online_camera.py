@@ -1,0 +1,70 @@
+"""The online camera's prior for the next window: the information the windows carried, about their estimates.
+
+A calibration given as a file has a diagonal prior, and the windows' information here is diagonal too,
+so each parameter's prior mean has the scalar closed form (sum of information times estimate over the
+sum of information) to check against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nocal_ros.lens import CameraCalibration
+from nocal_ros.odometry.bundle_adjustment import camera_parameters
+from nocal_ros.odometry.calibration import OnlineCamera, anchored_prior
+
+
+def camera_with(fx: float, fy: float, k1: float = 0.0) -> CameraCalibration:
+    K = np.array([[fx, 0.0, 80.0], [0.0, fy, 60.0], [0.0, 0.0, 1.0]])
+    return CameraCalibration(160, 120, K, np.array([k1, 0.0, 0.0, 0.0, 0.0]), "plumb_bob", "test")
+
+
+def test_the_next_windows_prior_is_the_information_weighted_mean_of_the_windows_estimates():
+    start = camera_with(100.0, 100.0)
+    camera = OnlineCamera(start, "file")
+    start_information = np.diag(camera.initial_information).copy()
+    assert np.count_nonzero(camera.initial_information - np.diag(start_information)) == 0
+    window = np.diag(3.0 * start_information)  # each window knows three times what the file did
+    carried = 0.25 * np.diag(window)  # the share of a window that leaves with its oldest keyframe
+
+    first, second = camera_with(110.0, 108.0, -0.1), camera_with(120.0, 118.0, -0.2)
+    camera.update(first, np.eye(8), window, kept_share=0.75)
+    mean, information = camera.prior()
+    expected = (start_information * camera_parameters(start) + carried * camera_parameters(first)) / (start_information + carried)
+    np.testing.assert_allclose(mean, expected, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(information), start_information + carried, rtol=1e-12)
+
+    camera.update(second, np.eye(8), window, kept_share=0.75)
+    mean, information = camera.prior()
+    expected = (start_information * camera_parameters(start) + carried * (camera_parameters(first) + camera_parameters(second))) \
+        / (start_information + 2 * carried)
+    np.testing.assert_allclose(mean, expected, rtol=1e-12)
+    assert camera.calibration.fx == 120.0  # what is published is the latest window's estimate
+    assert mean[0] == pytest.approx(100.0 + (10.0 + 20.0) * 0.75 / (1.0 + 1.5))  # not the latest, 120
+    # A given calibration's window prior is the carried one as it is (no principal point anchor).
+    anchored_mean, anchored_information = anchored_prior(camera)
+    np.testing.assert_array_equal(anchored_mean, mean)
+    np.testing.assert_array_equal(anchored_information, information)
+
+
+def test_an_initialisation_replaces_what_the_windows_carried_and_a_reset_starts_again():
+    start = camera_with(100.0, 100.0)
+    camera = OnlineCamera(start, "file")
+    start_information = np.diag(camera.initial_information).copy()
+    window = np.diag(2.0 * start_information)
+    camera.update(camera_with(130.0, 130.0), np.eye(8), window, kept_share=0.5)
+    initialised = camera_with(104.0, 103.0)
+    # The initialisation solved every keyframe the carried windows came from: they are not counted again.
+    camera.update(initialised, np.eye(8), window, kept_share=0.5, initialisation=True)
+    mean, _ = camera.prior()
+    expected = (start_information * camera_parameters(start) + 0.5 * np.diag(window) * camera_parameters(initialised)) \
+        / (start_information + 0.5 * np.diag(window))
+    np.testing.assert_allclose(mean, expected, rtol=1e-12)
+    assert mean[0] == pytest.approx(100.0 + 4.0 * 1.0 / 2.0)
+
+    restart = camera_with(90.0, 90.0)
+    camera.reset(restart, "file")
+    mean, information = camera.prior()
+    np.testing.assert_allclose(mean, camera_parameters(restart), rtol=1e-12)
+    np.testing.assert_array_equal(information, camera.initial_information)
