@@ -370,7 +370,8 @@ def test_bad_input_raises_a_clear_nocal_error(change, message):
 def test_solver_jacobians_equal_finite_differences_of_its_projection(model):
     """The solver's analytic derivatives (pose on the right, ``R Exp(omega)``, ``t + R v``; point;
     camera parameters) against central differences of its own projection."""
-    from nocal_ros.odometry.bundle_adjustment import _project, _so3_exp
+    from nocal_ros.geometry import so3_exp
+    from nocal_ros.odometry.bundle_adjustment import _project
 
     camera = true_camera(model)
     parameters = camera_parameters(camera)
@@ -391,8 +392,8 @@ def test_solver_jacobians_equal_finite_differences_of_its_projection(model):
     for i in range(6):
         xi = np.zeros((20, 6))
         xi[:, i] = h
-        plus = project(R @ _so3_exp(xi[:, :3]), t + np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
-        minus = project(R @ _so3_exp(-xi[:, :3]), t - np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
+        plus = project(R @ so3_exp(xi[:, :3]), t + np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
+        minus = project(R @ so3_exp(-xi[:, :3]), t - np.einsum("nij,nj->ni", R, xi[:, 3:]), points, parameters)
         np.testing.assert_allclose(d_pose[:, :, i], (plus - minus) / (2 * h), rtol=1e-5, atol=1e-4)
     for i in range(3):
         step = np.zeros(3)

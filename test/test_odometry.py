@@ -233,7 +233,7 @@ def test_pose_covariance_matches_monte_carlo_propagation():
         sigmas = [std["translation_m"]] * 3 + [std["rotation_rad"]] * 3
         xi = rng.normal(scale=sigmas, size=(samples, 6)) @ ad.T  # camera-frame noise seen in the base frame
         noise = np.zeros((samples, 4, 4))
-        noise[:, :3, :3] = rodrigues(xi[:, 3:])
+        noise[:, :3, :3] = so3_exp(xi[:, 3:])
         noise[:, :3, 3] = xi[:, :3]
         noise[:, 3, 3] = 1.0
         T = T @ pair @ noise
@@ -249,15 +249,6 @@ def test_pose_covariance_matches_monte_carlo_propagation():
 
 def skew(v):
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def rodrigues(rotvecs: np.ndarray) -> np.ndarray:
-    """Batched so3_exp ``(N, 3) -> (N, 3, 3)``."""
-    angle = np.linalg.norm(rotvecs, axis=1)[:, None, None]
-    K = np.zeros((len(rotvecs), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -rotvecs[:, 2], rotvecs[:, 1], -rotvecs[:, 0]
-    K = (K - K.transpose(0, 2, 1)) / angle
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 def test_propagation_of_a_zero_pair_keeps_the_covariance():

@@ -80,6 +80,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nocal_ros.errors import NocalError
+from nocal_ros.geometry import so3_exp
 from nocal_ros.lens import CameraCalibration, distort_normalised, distortion_jacobians
 
 #: Which camera parameters each ``WindowProblem.camera`` mode frees (indices into camera_parameters).
@@ -354,23 +355,6 @@ def _project(parameters: np.ndarray, model: str, rotations: np.ndarray, translat
     for array in (d_pose, d_points, d_camera):
         array[~front] = 0.0
     return pixels, (d_pose, d_points, d_camera), front
-
-
-def _so3_exp(rotation_vectors: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(N, 3, 3)`` of rotation vectors ``(N, 3)`` (Rodrigues; Taylor below 1e-8 rad).
-
-    ``geometry.so3_exp`` for a batch: not imported from there, because ``nocal_ros.geometry`` loads torch,
-    which the solver's worker process must not (1.8 s before its first solve, BENCHMARKS.md).
-    """
-    angle = np.linalg.norm(rotation_vectors, axis=1)
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 1.0 - angle**2 / 6.0, np.sin(angle) / safe)
-    b = np.where(small, 0.5 - angle**2 / 24.0, (1.0 - np.cos(angle)) / safe**2)
-    K = np.zeros((len(angle), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -rotation_vectors[:, 2], rotation_vectors[:, 1], -rotation_vectors[:, 0]
-    K -= K.transpose(0, 2, 1)
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def _reprojection_errors(calibration: CameraCalibration, poses, points, keyframe_index, point_index, pixels):
@@ -658,7 +642,7 @@ class _Window:
             free = np.flatnonzero(self.pose_variable >= 0)
             pose_step = step[: self.pose_size].reshape(-1, 6)
             translations[free] += np.matmul(rotations[free], pose_step[:, 3:, None])[:, :, 0]
-            rotations[free] = rotations[free] @ _so3_exp(pose_step[:, :3])
+            rotations[free] = rotations[free] @ so3_exp(pose_step[:, :3])
         points[self.observed_points] += point_step
         parameters[self.camera_free] += step[self.pose_size:]
         return rotations, translations, points, parameters

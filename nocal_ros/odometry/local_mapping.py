@@ -457,9 +457,13 @@ class LocalMapping:
 
 
 def _import_solver() -> None:
-    """Load the solver and its libraries in the solver process."""
+    """Load the solver, the camera initialisation and their libraries in the solver process, before its
+    first solve: imported there, they made the first initialisation of a live stream later."""
+    import importlib
+
     from nocal_ros.odometry.bundle_adjustment import load_libraries
 
+    importlib.import_module("nocal_ros.odometry.camera_initialisation")
     load_libraries()
 
 
