@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -45,9 +46,9 @@ def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
 def test_the_solver_process_loads_its_modules_before_the_first_solve_and_never_torch():
     """The solver process's start imports the solver and the camera initialisation, and neither loads
     torch: loaded at the first camera initialisation of a live stream, torch took 1.5 s of it."""
-    code = ("import sys\n"
+    code = ("import json, sys\n"
             "from nocal_ros.odometry.local_mapping import _import_solver\n"
             "_import_solver()\n"
-            "print(sorted(m for m in ('torch', 'cv2', 'scipy.sparse', 'nocal_ros.odometry.camera_initialisation') if m in sys.modules))")
+            "print(json.dumps(sorted(m for m in ('torch', 'cv2', 'scipy.sparse', 'nocal_ros.odometry.camera_initialisation') if m in sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120).stdout
-    assert out.split() == ["['cv2',", "'nocal_ros.odometry.camera_initialisation',", "'scipy.sparse']"]
+    assert json.loads(out) == ["cv2", "nocal_ros.odometry.camera_initialisation", "scipy.sparse"]

@@ -72,10 +72,11 @@ def anchored_prior(camera: "OnlineCamera", initial: bool = False) -> tuple[np.nd
     """
     from nocal_ros.odometry.bundle_adjustment import camera_parameters
 
-    calibration = camera.initial_calibration if initial else camera.calibration
     if initial:
+        calibration = camera.initial_calibration
         mean, information = camera_parameters(calibration), camera.initial_information
     else:
+        calibration = camera.calibration
         mean, information = camera.prior()
     if camera.given:
         return mean, information
