@@ -1,4 +1,5 @@
-"""Local mapping's worker process: solves run there, and a process that dies is replaced."""
+"""Local mapping: its worker process (solves run there, and a process that dies is replaced), and a keyframe
+that tracking posed before a solve landed."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
+from test_bundle_adjustment import make_window
 from test_camera_initialisation import noisy_window, problem_through
 
+from nocal_ros.geometry import so3_exp
 from nocal_ros.odometry.calibration import OnlineCamera
 from nocal_ros.odometry.local_mapping import SOLVER_RESTARTS, LocalMapping
+from nocal_ros.odometry.map import LocalMap
 
 
 def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
@@ -52,3 +56,32 @@ def test_the_solver_process_loads_its_modules_before_the_first_solve_and_never_t
             "print(json.dumps(sorted(m for m in ('torch', 'cv2', 'scipy.sparse', 'nocal_ros.odometry.camera_initialisation') if m in sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120).stdout
     assert json.loads(out) == ["cv2", "nocal_ros.odometry.camera_initialisation", "scipy.sparse"]
+
+
+def test_a_keyframe_posed_before_a_solve_landed_is_posed_again_on_the_map_as_it_is_now():
+    """OpenCV-projected landmarks without noise: the newest keyframe, posed by tracking in the map's
+    previous version (3 deg and 5 cm off the map as it is now), is posed again by PnP to the pose its
+    pixels were projected from before it is triangulated from, and the map's version counts the change;
+    a keyframe posed in the map's present version, and one posed again already, are left as they are."""
+    camera, poses, _, points, keyframe_index, point_index, pixels = make_window("plumb_bob", 4, keyframes=6, landmarks=120)
+    stale = poses[5].copy()
+    stale[:3, :3] = so3_exp(np.radians(3.0) * np.array([0.6, 0.8, 0.0])) @ stale[:3, :3]
+    stale[:3, 3] += [0.03, -0.04, 0.0]
+    local_map = LocalMap()
+    for k in range(6):
+        rows = keyframe_index == k
+        local_map.add_keyframe(k, k, stale if k == 5 else poses[k], point_index[rows], pixels[rows])
+    local_map.landmarks = {j: point for j, point in enumerate(points)}
+    mapping = LocalMapping(OnlineCamera(camera, "file"), synchronous=True)
+    newest, previous = local_map.keyframes[5], local_map.keyframes[4]
+    assert not mapping.pose_again(local_map, newest)  # posed in the map's present version
+    np.testing.assert_array_equal(newest.T_w_c, stale)
+    local_map.version += 1  # a solve landed after tracking posed it
+    assert mapping.pose_again(local_map, newest)
+    np.testing.assert_allclose(newest.T_w_c, poses[5], atol=1e-6)
+    assert local_map.version == 2  # a change of the map, which tracking must see
+    assert newest.map_version == local_map.version and not mapping.pose_again(local_map, newest)
+    before = previous.T_w_c.copy()
+    previous.map_version = local_map.version
+    assert not mapping.pose_again(local_map, previous)
+    np.testing.assert_array_equal(previous.T_w_c, before)

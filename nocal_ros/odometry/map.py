@@ -29,6 +29,7 @@ class Keyframe:
         T_w_c: ``(4, 4)`` camera pose in the map frame.
         ids: ``(N,)`` increasing track ids seen in this frame.
         pixels: ``(N, 2)`` their native pixels.
+        map_version: the map's :attr:`LocalMap.version` that ``T_w_c`` was measured in.
     """
 
     index: int
@@ -37,6 +38,7 @@ class Keyframe:
     T_w_c: np.ndarray
     ids: np.ndarray
     pixels: np.ndarray
+    map_version: int = 0
 
     def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of ``ids`` in this keyframe: ``(found mask (len(ids),), rows of the found ones)``."""
@@ -54,7 +56,8 @@ class LocalMap:
     keyframes: list[Keyframe] = field(default_factory=list)
     landmarks: dict[int, np.ndarray] = field(default_factory=dict)
     lock: threading.RLock = field(default_factory=threading.RLock)
-    #: Counts the bundle adjustments applied: tracking re-poses its previous frame when it changed.
+    #: Counts the changes applied (bundle adjustments, similarity moves): tracking poses its previous frame
+    #: again when it changed, and local mapping a keyframe posed in an older version.
     version: int = 0
     #: The map's unit now in units of the map as it was made (:meth:`transform` changes it).
     unit_scale: float = 1.0
@@ -66,11 +69,14 @@ class LocalMap:
             positions = np.array([self.landmarks[int(i)] for i in np.asarray(ids)[mask]]).reshape(-1, 3)
         return mask, positions
 
-    def add_keyframe(self, frame: int, stamp_ns: int, T_w_c: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> Keyframe:
+    def add_keyframe(self, frame: int, stamp_ns: int, T_w_c: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
+                     map_version: int | None = None) -> Keyframe:
+        """``map_version``: the version ``T_w_c`` was measured in (default: the map's version now)."""
         with self.lock:
             order = np.argsort(ids, kind="stable")
             keyframe = Keyframe(len(self.keyframes), frame, stamp_ns, np.array(T_w_c, dtype=np.float64),
-                                np.asarray(ids, dtype=np.int64)[order], np.asarray(pixels, dtype=np.float64)[order])
+                                np.asarray(ids, dtype=np.int64)[order], np.asarray(pixels, dtype=np.float64)[order],
+                                self.version if map_version is None else int(map_version))
             self.keyframes.append(keyframe)
             return keyframe
 
