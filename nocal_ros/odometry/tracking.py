@@ -470,17 +470,23 @@ class VisualOdometry:
         return T1 @ step
 
     def _predicted_pixels(self, T_w_c: np.ndarray) -> dict[int, np.ndarray] | None:
-        """Where the landmarks of the live tracks project at pose ``T_w_c`` (the map's other landmarks are not tracked)."""
+        """Where the landmarks of the live tracks project at pose ``T_w_c`` (the map's other landmarks are not
+        tracked); None when the map changed since the motion model was brought up to date: the guess and the
+        landmarks must be of one state (:meth:`_pose_previous_again`), and without a prediction Lucas-Kanade
+        starts where the tracks were."""
         if self.map is None:
             return None
         with self.map.lock:
+            if self.map.version != self._poses_version:
+                return None
+            calibration = self.camera.calibration
             landmarks = self.map.landmarks
             ids = [i for i in self.tracker.ids.tolist() if i in landmarks]
             if not ids:
                 return None
             points = np.array([landmarks[i] for i in ids])
         points_c = (points - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-        pixels = self.camera.calibration.project(points_c)
+        pixels = calibration.project(points_c)
         ok = np.isfinite(pixels).all(1)
         return dict(zip(np.asarray(ids)[ok].tolist(), pixels[ok]))
 
