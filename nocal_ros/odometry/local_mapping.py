@@ -288,7 +288,9 @@ class LocalMapping:
             return False
         with local_map.lock:
             if local_map.version != version:
-                return False  # another solve landed meanwhile (only when tracking applies one: arm alignment)
+                # Changed by another thread meanwhile: none does today (the map's other changes are local
+                # mapping's own, or the end of a replay's after mapping finished); the PnP is of an older state.
+                return False
             # A new version: tracking poses its previous frame again when the keyframe it is relative to moved.
             local_map.version += 1
             keyframe.T_w_c = pnp.T_w_c
