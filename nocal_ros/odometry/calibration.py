@@ -49,8 +49,11 @@ ASPECT_STD = 0.02
 #: lengths within a wide range about the guess (as a share of the width), the principal point near the
 #: image centre (as a share of the width), moderate distortion. Without it the first windows, which
 #: cannot separate the focal length from depth, ran off (a held-out camera 4 % from the f = width guess
-#: went to 130 % error, its principal point 190 px out of a 120 px image; measured).
-GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential": 0.01, "aspect": ASPECT_STD}
+#: went to 130 % error, its principal point 190 px out of a 120 px image; measured). Tangential terms
+#: (tried only in long initialisations, ``local_mapping.TANGENTIAL_MIN_KEYFRAMES``) within 0.002: with
+#: 0.01, two dev cameras kept 0.010 and -0.014, five to seven times any dev lens's, and their principal
+#: points went 38 and 4 px off (measured).
+GUESS_STD = {"focal": 0.5, "principal_point": 0.05, "radial": 0.3, "tangential": 0.002, "aspect": ASPECT_STD}
 
 
 #: A camera nobody calibrated has its principal point held near the image centre in every window (one
@@ -167,6 +170,9 @@ class OnlineCamera:
         self.given = source == "file"
         self.updates = 0
         self.keyframes = 0
+        #: Whether plumb_bob's tangential terms are estimated: a camera initialisation found them
+        #: significant (``local_mapping.TANGENTIAL_SIGNIFICANCE``); else they stay where they started.
+        self.tangential = False
 
     def _carry_from_start(self) -> None:
         from nocal_ros.odometry.bundle_adjustment import camera_parameters
@@ -254,3 +260,4 @@ class OnlineCamera:
             self.given = source == "file"
             self.updates = 0
             self.keyframes = 0
+            self.tangential = False

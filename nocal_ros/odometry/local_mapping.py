@@ -20,7 +20,8 @@ for replays that must repeat exactly). For each keyframe:
 An uncalibrated camera is held in the windows until a **camera initialisation** is taken: at the map's
 6th, 10th, 16th, 25th and 40th keyframe (then every 20th), the window's solve is replaced by one over
 all the map's keyframes (the last 40) with the camera and its lens free and only the guess as prior, as
-ORB-SLAM3 initialises its inertial parameters in full solves after 2, 5 and 15 s. The first chooses
+ORB-SLAM3 initialises its inertial parameters in full solves after 2, 5 and 15 s (from the 25th on they
+also try plumb_bob's tangential terms, kept where significant: :data:`TANGENTIAL_SIGNIFICANCE`). The first chooses
 among focal hypotheses (:mod:`nocal_ros.odometry.camera_initialisation`) and is taken once its focal
 length's standard deviation is below :data:`INITIALISATION_FOCAL_STD`. Measured on 10 dev bags (six
 random cameras, the held-out, fisheye and VAMR bags): windows alone from ``f = width`` left one camera
@@ -35,7 +36,7 @@ import queue
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -58,6 +59,16 @@ SOLVER_RESTARTS = 3
 SEARCH_SOURCES = 8
 #: Fewest degrees between the two rays of a new landmark (smaller angles give depth from noise).
 MIN_TRIANGULATION_DEG = 1.0
+#: Fewest keyframes in a camera initialisation that tries plumb_bob's tangential terms (p1, p2). In a
+#: window they trade with the principal point (a held-out 160x120 camera: cy 4 px off with them free);
+#: held at zero, the principal point takes up a real lens's decentring instead (heldout_640, true p1, p2
+#: 0.0007, -0.0004: cy 4.3 px off, ``dr`` 0.0113, measured).
+TANGENTIAL_MIN_KEYFRAMES = 25
+#: The tangential terms are kept when they differ from zero by more than this Wald statistic,
+#: ``p^T Cov(p)^-1 p`` (chi-square with 2 degrees of freedom, 99 %); else the initialisation is solved
+#: again without them. Free everywhere, they went 10-20 times their true size on low-distortion and
+#: 160x120 cameras (r160_211: 0.0018 against 0.0001) and the principal point with them (measured).
+TANGENTIAL_SIGNIFICANCE = 9.21
 
 
 @dataclass
@@ -341,16 +352,23 @@ class LocalMapping:
         last = max(schedule, default=0)
         return bool(schedule) and interval > 0 and keyframes > last and (keyframes - last) % interval == 0
 
-    def camera_freedom(self, initialise: bool = False) -> str:
-        """Which camera parameters the next bundle adjustment frees (the curriculum of the settings)."""
+    def camera_freedom(self, initialise: bool = False, solve_keyframes: int = 0) -> str:
+        """Which camera parameters the next bundle adjustment frees (the curriculum of the settings).
+
+        ``solve_keyframes``: the keyframes of a camera initialisation; from
+        :data:`TANGENTIAL_MIN_KEYFRAMES` on, an uncalibrated plumb_bob camera's tangential terms are
+        tried there (:meth:`bundle_adjust` keeps them only where they are significant).
+        """
         focal, intrinsics, lens = self.settings.camera_stages
         keyframes = self.camera.keyframes
         if not initialise and self.settings.camera_initialisation and not self.camera.given and self.camera.updates == 0:
             return "fixed"  # an uncalibrated camera waits for its initialisation
         if keyframes >= lens or initialise:
-            # plumb_bob's tangential terms stay at their start: in a window they trade with the
-            # principal point (measured on a held-out 160x120 bag: cy 4 px off with p1, p2 free).
-            return "full" if self.camera.calibration.distortion_model == "equidistant" else "radial"
+            if self.camera.calibration.distortion_model == "equidistant":
+                return "full"
+            # plumb_bob's tangential terms stay where they are in the windows (TANGENTIAL_MIN_KEYFRAMES).
+            tangential = initialise and not self.camera.given and solve_keyframes >= TANGENTIAL_MIN_KEYFRAMES
+            return "full" if tangential else "radial"
         if keyframes >= intrinsics:
             return "intrinsics"
         return "focal" if keyframes >= focal else "fixed"
@@ -374,7 +392,7 @@ class LocalMapping:
         camera positions of keyframes (``{keyframe index: position}``, an arm's, in the map's frame and
         unit), three or more: they hold the map's gauge and scale instead of its first keyframe.
         """
-        from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem, calibration_from_parameters
+        from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem, calibration_from_parameters, camera_parameters
 
         if whole_map:
             window = local_map.window(len(local_map.keyframes))
@@ -425,9 +443,11 @@ class LocalMapping:
         calibration = self.camera.calibration
         prior_mean, prior_information = anchored_prior(self.camera, initial=initialise)
         prior = CameraPrior(calibration_from_parameters(prior_mean, calibration), prior_information)
-        freedom = self.camera_freedom(initialise)
+        freedom = self.camera_freedom(initialise, len(window))
         if whole_map and self.camera.updates == 0 and not self.camera.given:
             freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
+        if whole_map and freedom == "full" and calibration.distortion_model == "plumb_bob" and not self.camera.tangential:
+            freedom = "radial"  # no initialisation found the tangential terms significant
         # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
         # oldest keyframe to a later one is held at its value from the previous windows.
         scale_pair = None if held >= 2 or measured is not None else (0, min(held + self.settings.scale_baseline, len(window) - 1))
@@ -448,6 +468,17 @@ class LocalMapping:
         # the plain solve reprojected better on the others).
         rebuild = whole_map and measured is None and freedom != "fixed"
         solution = self._solve(problem, hypotheses=hypotheses, rebuild=rebuild)
+        if freedom == "full" and calibration.distortion_model == "plumb_bob" and not whole_map:
+            # The tangential terms were tried: kept if significant, else solved again without them.
+            initial = camera_parameters(self.camera.initial_calibration)[6:8]
+            significance = tangential_significance(solution, initial) if solution.success else 0.0
+            self.camera.tangential = significance >= TANGENTIAL_SIGNIFICANCE
+            if not self.camera.tangential:
+                freedom = "radial"
+                start = camera_parameters(calibration)
+                start[6:8] = initial
+                problem = replace(problem, calibration=calibration_from_parameters(start, calibration), camera=freedom)
+                solution = self._solve(problem, hypotheses=hypotheses, rebuild=rebuild)
         if hypotheses and solution.success and solution.camera_covariance is not None:
             focal_std = np.sqrt(max(solution.camera_covariance[0, 0], 0.0)) / solution.calibration.fx
             if focal_std > INITIALISATION_FOCAL_STD:
@@ -499,6 +530,20 @@ def _import_solver() -> None:
 
     importlib.import_module("nocal_ros.odometry.camera_initialisation")
     load_libraries()
+
+
+def tangential_significance(solution: Any, start: np.ndarray) -> float:
+    """The Wald statistic ``d^T Cov(d)^-1 d`` of a plumb_bob solution's tangential terms ``(p1, p2)``
+    against where they ``start`` ed, ``d`` their difference (0 without a camera covariance: nothing
+    shows them)."""
+    covariance = solution.camera_covariance
+    if covariance is None:
+        return 0.0
+    p = np.asarray(solution.calibration.D[2:4], dtype=np.float64) - np.asarray(start, dtype=np.float64)
+    block = covariance[6:8, 6:8]
+    if not np.all(np.isfinite(block)) or np.linalg.matrix_rank(block) < 2:
+        return 0.0
+    return float(p @ np.linalg.solve(block, p))
 
 
 def window_information(covariance: np.ndarray, prior_information: np.ndarray | None) -> np.ndarray:
