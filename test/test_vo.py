@@ -166,16 +166,18 @@ def test_the_final_trajectory_poses_the_frames_again_through_the_converged_camer
 
 
 def test_a_recording_vo_keeps_the_newest_keyframe_images_within_its_budget(sequence):
-    """Each keyframe's grey image is kept while recording (for the end-of-replay search), within the
-    budget: with room for five 160x120 images, the five newest keyframes' are kept, the others let go
-    and counted; without recording, none."""
+    """Each keyframe's grey image is kept while recording (for the end-of-replay search), at the tracker's
+    work size (these 160x120 frames are tracked at 320x240), within the budget: with room for five such
+    images, the five newest keyframes' are kept, the others let go and counted; without recording, none."""
     from nocal_ros.odometry.calibration import OnlineCamera
+    from nocal_ros.odometry.frontend import TrackerSettings
     from nocal_ros.odometry.tracking import VisualOdometry
 
+    factor = -(-TrackerSettings().min_work_width // WIDTH)
     frames = list(zip(sequence.stamps_ns[:60], sequence.images[:60]))
     unlimited = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True, record=True)
     budget = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True, record=True,
-                            image_budget_bytes=5 * WIDTH * HEIGHT)
+                            image_budget_bytes=5 * factor**2 * WIDTH * HEIGHT)
     plain = VisualOdometry(OnlineCamera(CAMERA, "file"), synchronous=True)
     for vo in (unlimited, budget, plain):
         for k, (stamp, image) in enumerate(frames):
@@ -183,7 +185,9 @@ def test_a_recording_vo_keeps_the_newest_keyframe_images_within_its_budget(seque
         vo.close()
     keyframes = [kf.frame for kf in unlimited.records[-1].local_map.keyframes]
     assert len(keyframes) > 5 and sorted(unlimited.keyframe_images) == keyframes
-    assert all(image.shape == (HEIGHT, WIDTH) and image.dtype == np.uint8 for image in unlimited.keyframe_images.values())
+    assert factor == 2
+    assert all(image.shape == (factor * HEIGHT, factor * WIDTH) and image.dtype == np.uint8
+               for image in unlimited.keyframe_images.values())
     assert sorted(budget.keyframe_images) == keyframes[-5:] and budget.keyframe_images_dropped == len(keyframes) - 5
     np.testing.assert_array_equal(budget.keyframe_images[keyframes[-1]], unlimited.keyframe_images[keyframes[-1]])
     assert plain.keyframe_images == {}

@@ -178,3 +178,27 @@ def test_tracks_keep_their_ids_follow_the_motion_and_spread_over_the_grid():
     after = wide.track(shifted(image, 4.0, 0.0))
     common = np.isin(before.ids, after.ids)
     assert np.abs(np.median(after.pixels[:, 0] - before.pixels[common, 0]) - 4.0) < 0.3
+
+
+def test_a_small_frame_is_tracked_enlarged_and_its_tracks_come_back_in_native_pixels():
+    """160x120 frames are tracked at 320x240 (``min_work_width``): the shift of a frame moved by a known
+    sub-pixel amount (OpenCV's warp) comes back in native pixels, and the forward-backward check keeps its
+    half native pixel (a whole work pixel)."""
+    from nocal_ros.odometry.frontend import FORWARD_BACKWARD_PX, forward_backward_px
+
+    image = textured_image(160, 120, seed=3)
+    tracker = FeatureTracker(TrackerSettings(max_tracks=100, grid=(4, 3)))
+    tracker.track(image)
+    assert tracker.gray.shape == (240, 320) and tracker.work_scale == (0.5, 0.5)
+    assert tracker.top_up() > 50
+    before = tracker.current()
+    assert before.pixels.max(0)[0] <= 159.5 and before.pixels.max(0)[1] <= 119.5
+    after = tracker.track(shifted(image, 1.25, -0.75))
+    common = np.isin(before.ids, after.ids)
+    assert common.mean() > 0.8
+    np.testing.assert_allclose(np.median(after.pixels - before.pixels[common], axis=0), [1.25, -0.75], atol=0.05)
+    assert forward_backward_px(tracker.work_scale) == 2 * FORWARD_BACKWARD_PX
+    assert forward_backward_px((1.0, 1.0)) == forward_backward_px((1.175, 1.175)) == FORWARD_BACKWARD_PX
+    native = FeatureTracker(TrackerSettings(min_work_width=0))
+    native.track(image)
+    assert native.gray.shape == (120, 160) and native.work_scale == (1.0, 1.0)

@@ -5,7 +5,8 @@ track stays on one scene point for as long as it is in view: its id is the id of
 becomes once triangulated. New corners are detected only in the cells of a grid that hold too few
 tracks, which keeps the tracks spread over the image (a cluster in one corner would leave the pose and
 the camera's distortion poorly constrained elsewhere). Frames wider than ``work_width`` are tracked at
-that width; coordinates handed out are always native pixels.
+that width, frames narrower than ``min_work_width`` enlarged by a whole factor; coordinates handed out
+are always native pixels.
 
 Each frame is posed against the local map by PnP inside RANSAC on the tracks that have a landmark. The
 pixels become rays through the online camera (``CameraCalibration.undistorted_normalised``: the one
@@ -25,7 +26,8 @@ PYRAMID_LEVELS = 3
 #: Lucas-Kanade's iterations per pyramid level at most, and its step size (px) that ends them: OpenCV's defaults.
 LK_ITERATIONS = 30
 LK_EPSILON = 0.01
-#: A track whose backward track does not return within this many (work) pixels is a mismatch.
+#: A track whose backward track does not return within this many pixels (work pixels, native ones on an
+#: enlarged image) is a mismatch.
 FORWARD_BACKWARD_PX = 0.5
 
 
@@ -44,14 +46,21 @@ def detect_corners(gray: np.ndarray, max_corners: int, mask: np.ndarray | None =
     return cv2.goodFeaturesToTrack(gray, int(max_corners), 0.01, distance, mask=mask)
 
 
+def forward_backward_px(work_scale: tuple[float, float]) -> float:
+    """The forward-backward threshold in work pixels for images tracked at ``work_scale`` (native pixels
+    per work pixel): :data:`FORWARD_BACKWARD_PX` work pixels, or as many native ones on an enlarged image."""
+    return FORWARD_BACKWARD_PX / min(1.0, float(min(work_scale)))
+
+
 def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
                   guess: np.ndarray | None = None, window: int = WINDOW[0],
-                  iterations: int = LK_ITERATIONS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  iterations: int = LK_ITERATIONS,
+                  max_return_px: float = FORWARD_BACKWARD_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Track ``corners`` ``(N, 2)`` of image ``i`` into image ``j`` (pyramidal Lucas-Kanade, forward and back).
 
     ``guess`` ``(N, 2)``: where each corner is expected in ``j`` (a motion prediction), else its position in ``i``.
     Returns the matched pixels ``(M, 2)`` float64 in ``i`` and in ``j`` and the indices ``(M,)`` of the
-    corners kept: only tracks that come back to within :data:`FORWARD_BACKWARD_PX` of where they started.
+    corners kept: only tracks that come back to within ``max_return_px`` of where they started.
     """
     points = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 1, 2)
     if len(points) == 0:
@@ -71,7 +80,7 @@ def track_corners(gray_i: np.ndarray, gray_j: np.ndarray, corners: np.ndarray,
     height, width = gray_j.shape[:2]
     moved = tracked.reshape(-1, 2)
     inside = (moved[:, 0] >= 0) & (moved[:, 1] >= 0) & (moved[:, 0] <= width - 1) & (moved[:, 1] <= height - 1)
-    returned = np.linalg.norm((back - points).reshape(-1, 2), axis=1) < FORWARD_BACKWARD_PX
+    returned = np.linalg.norm((back - points).reshape(-1, 2), axis=1) < max_return_px
     good = np.flatnonzero((status.ravel() == 1) & (status_back.ravel() == 1) & returned & inside)
     return points.reshape(-1, 2)[good].astype(np.float64), moved[good].astype(np.float64), good
 
@@ -95,11 +104,16 @@ class TrackerSettings:
         max_tracks: tracks kept at most.
         grid: ``(columns, rows)`` of cells that new corners are spread over.
         work_width: frames wider than this are tracked at this width (speed); 640 keeps 640x480 native.
+        min_work_width: frames narrower than this are tracked enlarged by the smallest whole factor that
+            reaches it (bilinear): the Lucas-Kanade window then covers less of the scene, and tracks
+            live longer (r160_201 at 160x120: 13.5 % of the tracks lost per frame, 4.5 % at 320x240;
+            heldout_160 12.2 %, 8.2 %; measured over 40 frames).
     """
 
     max_tracks: int = 300
     grid: tuple[int, int] = (8, 6)
     work_width: int = 640
+    min_work_width: int = 320
     window: int = WINDOW[0]
     lk_iterations: int = LK_ITERATIONS
 
@@ -159,6 +173,9 @@ class FeatureTracker:
         if width > self.settings.work_width:
             work_height = max(1, round(height * self.settings.work_width / width))
             gray = cv2.resize(gray, (self.settings.work_width, work_height), interpolation=cv2.INTER_AREA)
+        elif width < self.settings.min_work_width:
+            factor = -(-self.settings.min_work_width // width)
+            gray = cv2.resize(gray, (width * factor, height * factor), interpolation=cv2.INTER_LINEAR)
         self._scale = (width / gray.shape[1], height / gray.shape[0])
         return gray
 
@@ -191,7 +208,7 @@ class FeatureTracker:
             if rows:
                 guess[rows] = self.to_work(np.array([predicted[int(self._ids[row])] for row in rows]))
         _, moved, kept = track_corners(previous, gray, self._points, guess, self.settings.window,
-                                       self.settings.lk_iterations)
+                                       self.settings.lk_iterations, forward_backward_px(self._scale))
         self._ids = self._ids[kept]
         self._points = moved.astype(np.float32)
         return self.current()

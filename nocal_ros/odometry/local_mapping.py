@@ -711,7 +711,7 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
     at the end of a replay: APE Sim(3) lower on 13 (median 0.0221 -> 0.0150 m), the final focal error on
     14 (median 0.57 -> 0.34 %).
     """
-    from nocal_ros.odometry.frontend import WINDOW, native_pixels, track_corners, work_pixels
+    from nocal_ros.odometry.frontend import WINDOW, forward_backward_px, native_pixels, track_corners, work_pixels
 
     margin = WINDOW[0] // 2 + 1  # a window that would leave the image is not followed
 
@@ -796,7 +796,8 @@ def search_by_projection(local_map: LocalMap, calibration: "CameraCalibration", 
                 if len(rows) == 0:
                     continue
                 start = work_pixels(pixels[source_at[rows]], work_scale)
-                _, moved, kept = track_corners(images[keyframes[s].frame], image, start, work[rows])
+                _, moved, kept = track_corners(images[keyframes[s].frame], image, start, work[rows],
+                                               max_return_px=forward_backward_px(work_scale))
                 landed = native_pixels(moved, work_scale)
                 close = np.linalg.norm(landed - projected[rows[kept]], axis=1) < pixel_threshold
                 new_ids.append(ids[wanted[rows[kept[close]]]])
