@@ -799,7 +799,8 @@ class OdometryEstimator:
         return _scaled(T_map_cam, self._scale.scale)
 
     def _start_map(self, vo_frame: VOFrame, frame: int, key: int) -> None:
-        """Anchor a new map in odom at the pose published for its first keyframe; its first scale guess."""
+        """Anchor a new map in odom at the pose published for its first keyframe, turned about the frame it
+        starts at to that frame's chained rotation; its first scale guess."""
         reference = vo_frame.reference_frame
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id
@@ -819,6 +820,15 @@ class OdometryEstimator:
         scale = first_guess if first_guess and np.isfinite(first_guess) and first_guess > 0 else 1.0
         self._scale = ScaleEstimate(scale, "arm" if arm_ref is not None and arm_cur is not None else
                                     ("pose_head" if first_guess else "none"), 0)
+        if vo_frame.rotation_from_reference is not None:
+            # The frame the map starts at keeps the rotation chained frame to frame since the reference,
+            # as the frames published before it had, and the map turns about it to match: odometry must
+            # not jump. Its two-view rotation from the reference, through a guessed camera, differed from
+            # the chained one by 2-23 deg (18 dev bags; a 21 deg step in one frame pair, measured).
+            T_map = self._metric_pose(vo_frame.T_map_cam)
+            T_continued = T_map.copy()
+            T_continued[:3, :3] = vo_frame.rotation_from_reference
+            self._anchor = self._anchor @ T_continued @ invert_transform(T_map)
 
     def _update_scale(self, vo_frame: VOFrame) -> None:
         """At keyframes, refit the scale to the arm poses of the map's keyframes (see :mod:`~nocal_ros.odometry.scale`)."""

@@ -85,7 +85,8 @@ class VOFrame:
         state: ``"initialising"``, ``"ok"`` or ``"lost"`` (see the module notes).
         T_map_cam: ``(4, 4)`` pose in the map (``"ok"`` only).
         covariance: ``(6, 6)`` of ``T_map_cam`` (right perturbation, ``(rho, theta)``, map units).
-        rotation_from_reference: ``R_ref_cur`` while initialising (None when unknown).
+        rotation_from_reference: ``R_ref_cur`` chained frame to frame while initialising, and at the frame a
+            new map starts at (None when unknown).
         direction_from_reference: the unit direction of travel from the reference while initialising,
             when the parallax shows it (None: a rotation alone explains the tracks).
         map_id: the map the pose is in (a new id after each initialisation).
@@ -308,7 +309,7 @@ class VisualOdometry:
         self._submit(local_map, keyframe)
         return VOFrame("ok", T_map_cam=keyframe.T_w_c.copy(), covariance=None, map_id=self.map_id,
                        reference_frame=reference_frame, new_map=True, keyframe=True, tracks=len(tracked.ids),
-                       inliers=int(result.inliers.sum()))
+                       inliers=int(result.inliers.sum()), rotation_from_reference=rotation)
 
     def _track(self, frame: int, stamp_ns: int, tracked: TrackedFrame, guess: np.ndarray | None) -> VOFrame:
         settings = self.settings
