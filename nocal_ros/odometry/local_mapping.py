@@ -64,8 +64,8 @@ MIN_TRIANGULATION_DEG = 1.0
 #: held at zero, the principal point takes up a real lens's decentring instead (heldout_640, true p1, p2
 #: 0.0007, -0.0004: cy 4.3 px off, ``dr`` 0.0113, measured).
 TANGENTIAL_MIN_KEYFRAMES = 25
-#: The tangential terms are kept when they differ from zero by more than this Wald statistic,
-#: ``p^T Cov(p)^-1 p`` (chi-square with 2 degrees of freedom, 99 %); else the initialisation is solved
+#: The tangential terms are kept when they differ from where they started (zero for a guessed camera) by
+#: this Wald statistic or more, ``d^T Cov(d)^-1 d`` (chi-square, 2 degrees of freedom, 99 %); else the initialisation is solved
 #: again without them. Free everywhere, they went 10-20 times their true size on low-distortion and
 #: 160x120 cameras (r160_211: 0.0018 against 0.0001) and the principal point with them (measured).
 TANGENTIAL_SIGNIFICANCE = 9.21
