@@ -191,6 +191,10 @@ def test_tangential_terms_are_tried_only_in_long_initialisations_of_an_uncalibra
     assert mapping.camera_freedom(initialise=True, solve_keyframes=TANGENTIAL_MIN_KEYFRAMES) == "full"
     assert mapping.camera_freedom(initialise=True, solve_keyframes=TANGENTIAL_MIN_KEYFRAMES - 1) == "radial"
     assert mapping.camera_freedom() == "radial"  # windows
+    # A whole map's solve frees them only where an initialisation kept them.
+    assert mapping.camera_freedom(True, TANGENTIAL_MIN_KEYFRAMES, whole_map=True) == "radial"
+    camera.tangential = True
+    assert mapping.camera_freedom(True, TANGENTIAL_MIN_KEYFRAMES, whole_map=True) == "full"
     given = OnlineCamera(prior_calibration(160, 120), "file")
     given.keyframes = 50
     assert LocalMapping(given, MappingSettings(), synchronous=True).camera_freedom(True, 40) == "radial"

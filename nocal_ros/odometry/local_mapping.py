@@ -352,12 +352,13 @@ class LocalMapping:
         last = max(schedule, default=0)
         return bool(schedule) and interval > 0 and keyframes > last and (keyframes - last) % interval == 0
 
-    def camera_freedom(self, initialise: bool = False, solve_keyframes: int = 0) -> str:
+    def camera_freedom(self, initialise: bool = False, solve_keyframes: int = 0, whole_map: bool = False) -> str:
         """Which camera parameters the next bundle adjustment frees (the curriculum of the settings).
 
         ``solve_keyframes``: the keyframes of a camera initialisation; from
         :data:`TANGENTIAL_MIN_KEYFRAMES` on, an uncalibrated plumb_bob camera's tangential terms are
-        tried there (:meth:`bundle_adjust` keeps them only where they are significant).
+        tried there (:meth:`bundle_adjust` keeps them only where they are significant), and a whole
+        map's solve frees them only where an initialisation kept them.
         """
         focal, intrinsics, lens = self.settings.camera_stages
         keyframes = self.camera.keyframes
@@ -368,7 +369,7 @@ class LocalMapping:
                 return "full"
             # plumb_bob's tangential terms stay where they are in the windows (TANGENTIAL_MIN_KEYFRAMES).
             tangential = initialise and not self.camera.given and solve_keyframes >= TANGENTIAL_MIN_KEYFRAMES
-            return "full" if tangential else "radial"
+            return "full" if tangential and (self.camera.tangential or not whole_map) else "radial"
         if keyframes >= intrinsics:
             return "intrinsics"
         return "focal" if keyframes >= focal else "fixed"
@@ -443,11 +444,9 @@ class LocalMapping:
         calibration = self.camera.calibration
         prior_mean, prior_information = anchored_prior(self.camera, initial=initialise)
         prior = CameraPrior(calibration_from_parameters(prior_mean, calibration), prior_information)
-        freedom = self.camera_freedom(initialise, len(window))
+        freedom = self.camera_freedom(initialise, len(window), whole_map)
         if whole_map and self.camera.updates == 0 and not self.camera.given:
             freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
-        if whole_map and freedom == "full" and calibration.distortion_model == "plumb_bob" and not self.camera.tangential:
-            freedom = "radial"  # no initialisation found the tangential terms significant
         # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
         # oldest keyframe to a later one is held at its value from the previous windows.
         scale_pair = None if held >= 2 or measured is not None else (0, min(held + self.settings.scale_baseline, len(window) - 1))
