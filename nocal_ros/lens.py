@@ -35,6 +35,9 @@ DISTORTION_MODELS = {"plumb_bob": 5, "rational_polynomial": 8, "equidistant": 4}
 # about 1e-11 px for any real focal length).
 _UNDISTORT_TOLERANCE = 1e-14
 _UNDISTORT_MAX_ITERATIONS = 60
+#: Plain Newton steps on every point before the careful solve takes the rest (every pixel of a 640x480
+#: image through f = 420, k1 = -0.3, k2 = 0.09 converges in five).
+_UNDISTORT_PLAIN_ITERATIONS = 8
 
 
 def _xp(array: Any):
@@ -169,6 +172,73 @@ def _distortion_jacobian(x, y, D, model: str):
 
 
 def _newton_undistort(target, D, model: str):
+    """Newton on ``distort(x) = target`` for float64 numpy points ``(N, 2)``.
+
+    First plain Newton steps on every point at once; the points that did not converge to a root inside
+    the lens's fold that way are solved again with backtracking (:func:`_newton_undistort_careful`).
+    Inside the fold the root is unique, so both reach the same one, and the plain steps take about half
+    the careful solve's time (the VO undistorts every frame's tracks; BENCHMARKS.md).
+    """
+    x = target.copy()
+    for _ in range(_UNDISTORT_PLAIN_ITERATIONS):
+        residual = distort_normalised(x, D, model) - target
+        j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
+        det = j00 * j11 - j01 * j10
+        det = np.where(np.abs(det) > 1e-300, det, 1.0)
+        step = np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1)
+        step /= det[:, None]
+        x = x - step
+        if not np.abs(step).max(initial=0.0) > 1e-9:  # quadratic: the next residual is far below 1e-14
+            break
+    residual = distort_normalised(x, D, model) - target
+    j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
+    # Plain steps can land on a root past the fold (where the radial curve rises again), which the lens
+    # does not image; only roots before the first fold count.
+    solved = (((residual**2).sum(-1) <= _UNDISTORT_TOLERANCE**2) & ((j00 * j11 - j01 * j10) > 0)
+              & ((x**2).sum(-1) < _first_fold(D, model)))
+    if not solved.all():
+        rest = np.flatnonzero(~solved)
+        x[rest] = _newton_undistort_careful(target[rest], D, model)
+    return x
+
+
+def _first_fold(D, model: str) -> float:
+    """:func:`_first_fold_uncached`, remembered for the last lens (tracking asks every frame)."""
+    global _last_fold
+    key = (model, np.asarray(D, dtype=np.float64).tobytes())
+    cached_key, fold = _last_fold  # one tuple, read and written whole: threads share it
+    if cached_key != key:
+        fold = _first_fold_uncached(D, model)
+        _last_fold = (key, fold)
+    return fold
+
+
+_last_fold: tuple = (None, math.inf)
+
+
+def _first_fold_uncached(D, model: str) -> float:
+    """The smallest ``s = r^2 > 0`` where the radial map ``r -> r R(r^2)`` stops rising (``R + 2 s R'``
+    or ``R`` reaches zero), or inf: the roots of the polynomials whose signs those are."""
+    P = np.polynomial.polynomial
+    numerator = np.array([1.0, D[0], D[1], D[4]])
+    denominator = np.array([1.0, D[5], D[6], D[7]]) if model == "rational_polynomial" else np.array([1.0])
+    # R + 2 s R' = (N Dn + 2 s (N' Dn - N Dn')) / Dn^2
+    rising = P.polyadd(P.polymul(numerator, denominator),
+                       P.polymulx(2 * P.polysub(P.polymul(P.polyder(numerator), denominator),
+                                                P.polymul(numerator, P.polyder(denominator)))))
+    fold = np.inf
+    for polynomial in (rising, numerator, denominator):
+        polynomial = P.polytrim(polynomial, 0.0)
+        if len(polynomial) < 2:
+            continue
+        roots = P.polyroots(polynomial)
+        real = roots.real[(np.abs(roots.imag) <= 1e-9 * np.abs(roots)) & (roots.real > 0)]
+        if real.size:
+            fold = min(fold, float(real.min()))
+    return fold
+
+
+def _newton_undistort_careful(target, D, model: str):
     """Newton with backtracking on ``distort(x) = target`` for float64 numpy points ``(N, 2)``.
 
     Only points not yet converged are iterated, so a few hopeless ones (beyond the fold) cost little.
@@ -244,6 +314,7 @@ def _check_undistorted(x, target, D, model: str):
         & ((j00 * j11 - j01 * j10) > 0)
         & (radial > 0)
         & (radial + 2 * s * d_radial > 0)
+        & (s < _first_fold(D, model))  # a root where the curve rises again, past a fold, is no image either
     )
     return np.where(ok[:, None], x, np.nan)
 
