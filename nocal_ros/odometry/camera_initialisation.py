@@ -116,7 +116,7 @@ def rebuild(problem: WindowProblem, calibration) -> tuple[np.ndarray, np.ndarray
         rows = np.array([q for q in seen[k] if known[q]], dtype=np.int64)
         if len(rows) < 12:
             return None
-        pnp = solve_pnp(points[rows], normalised[[seen[k][q] for q in rows]], threshold)
+        pnp = solve_pnp(points[rows], normalised[[seen[k][q] for q in rows]], threshold, covariance=False)
         if pnp is None:
             return None
         poses[k] = pnp.T_w_c

@@ -238,8 +238,8 @@ class FeatureTracker:
         min_distance = max(3, width // 40)
         # Existing tracks block their neighbourhood, so a corner is never tracked twice.
         mask = np.full((height, width), 255, dtype=np.uint8)
-        for x, y in self._points:
-            cv2.circle(mask, (int(round(x)), int(round(y))), min_distance, 0, -1)
+        for x, y in np.rint(self._points).astype(np.int64).tolist():
+            cv2.circle(mask, (x, y), min_distance, 0, -1)
         cell_w, cell_h = width / columns, height / rows
         counts = np.zeros((rows, columns), dtype=np.int64)
         if len(self._points):
@@ -282,7 +282,7 @@ class PnPResult:
 
     T_w_c: np.ndarray
     inliers: np.ndarray
-    covariance: np.ndarray
+    covariance: np.ndarray | None
 
 
 def _pose_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -316,32 +316,29 @@ def pose_covariance(T_w_c: np.ndarray, points_w: np.ndarray, sigma: float) -> np
     The Gauss-Newton information ``J^T J / sigma^2`` of the reprojection residuals at the solution.
     """
     points_c = (points_w - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-    x, y, z = points_c[:, 0], points_c[:, 1], points_c[:, 2]
-    inv_z = 1.0 / z
-    # d(normalised)/d(points_c): the pinhole projection's Jacobian.
-    J_proj = np.zeros((len(z), 2, 3))
-    J_proj[:, 0, 0] = inv_z
-    J_proj[:, 0, 2] = -x * inv_z**2
-    J_proj[:, 1, 1] = inv_z
-    J_proj[:, 1, 2] = -y * inv_z**2
-    # points_c = Exp(-xi) applied to the old points_c: d/d rho = -I, d/d theta = [points_c]x.
-    J_point = np.zeros((len(z), 3, 6))
-    J_point[:, :, :3] = -np.eye(3)
-    J_point[:, 0, 4], J_point[:, 0, 5] = -z, y
-    J_point[:, 1, 3], J_point[:, 1, 5] = z, -x
-    J_point[:, 2, 3], J_point[:, 2, 4] = -y, x
-    J = np.einsum("nij,njk->nik", J_proj, J_point).reshape(-1, 6)
+    inv_z = 1.0 / points_c[:, 2]
+    u, v = points_c[:, 0] * inv_z, points_c[:, 1] * inv_z  # the normalised point
+    # Each residual's row: the pinhole projection's Jacobian times d(points_c)/d(xi) = [-I | [points_c]x],
+    # multiplied out (two einsums over (N, 2, 3) x (N, 3, 6) cost 0.5 ms a frame).
+    J = np.zeros((len(inv_z), 2, 6))
+    J[:, 0, 0], J[:, 0, 2] = -inv_z, u * inv_z
+    J[:, 1, 1], J[:, 1, 2] = -inv_z, v * inv_z
+    J[:, 0, 3], J[:, 0, 4], J[:, 0, 5] = u * v, -1.0 - u * u, v
+    J[:, 1, 3], J[:, 1, 4], J[:, 1, 5] = 1.0 + v * v, -u * v, -u
+    J = J.reshape(-1, 6)
     information = J.T @ J / sigma**2
     return np.linalg.pinv(information)
 
 
 def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
-              guess: np.ndarray | None = None, min_inliers: int = 12, seed: int = 0) -> PnPResult | None:
+              guess: np.ndarray | None = None, min_inliers: int = 12, seed: int = 0,
+              covariance: bool = True) -> PnPResult | None:
     """Pose a camera from landmarks ``points_w`` ``(N, 3)`` and their rays as undistorted normalised points ``(N, 2)``.
 
     RANSAC over minimal sets (OpenCV's P3P family with ``K = I``, so the threshold is in normalised units:
     ``pixels / f``), then Levenberg-Marquardt on the inliers. ``guess`` (``T_w_c``) is kept when RANSAC's
     best hypothesis explains fewer points than it does. Returns None with fewer than ``min_inliers``.
+    ``covariance=False`` leaves :attr:`PnPResult.covariance` None (for callers that only want the pose).
     """
     points_w = np.ascontiguousarray(points_w, dtype=np.float64).reshape(-1, 3)
     normalised = np.ascontiguousarray(normalised, dtype=np.float64).reshape(-1, 2)
@@ -379,6 +376,8 @@ def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
         return None
     mask = np.zeros(len(points_w), dtype=bool)
     mask[index[inliers]] = True
+    if not covariance:
+        return PnPResult(best, mask, None)
     # Noise from the inliers' own spread (at least a tenth of the threshold: a perfect fit is not certainty).
     sigma = max(float(np.sqrt(np.mean(errors[inliers] ** 2))), 0.1 * threshold)
     return PnPResult(best, mask, pose_covariance(best, object_points[inliers], sigma))

@@ -294,7 +294,7 @@ class LocalMapping:
             mask, positions = local_map.landmark_positions(keyframe.ids)
             guess = keyframe.T_w_c.copy()
         rays = calibration.undistorted_normalised(keyframe.pixels[mask])
-        pnp = solve_pnp(positions, rays, self.settings.pixel_threshold / calibration.fx, guess=guess)
+        pnp = solve_pnp(positions, rays, self.settings.pixel_threshold / calibration.fx, guess=guess, covariance=False)
         if pnp is None:
             return False
         with local_map.lock:

@@ -64,9 +64,11 @@ class LocalMap:
 
     def landmark_positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(mask (N,), positions (M, 3))`` of the ids that have a landmark."""
+        keys = np.asarray(ids).tolist()
         with self.lock:
-            mask = np.array([int(i) in self.landmarks for i in ids], dtype=bool)
-            positions = np.array([self.landmarks[int(i)] for i in np.asarray(ids)[mask]]).reshape(-1, 3)
+            landmarks = self.landmarks
+            mask = np.array([key in landmarks for key in keys], dtype=bool)
+            positions = np.array([landmarks[key] for key in keys if key in landmarks]).reshape(-1, 3)
         return mask, positions
 
     def add_keyframe(self, frame: int, stamp_ns: int, T_w_c: np.ndarray, ids: np.ndarray, pixels: np.ndarray,

@@ -443,7 +443,7 @@ class VisualOdometry:
                 mask, positions = self.map.landmark_positions(self._previous.ids)
                 rays = calibration.undistorted_normalised(self._previous.pixels[mask])
                 again = solve_pnp(positions, rays, self.settings.pixel_threshold / calibration.fx, guess=T_w_prev,
-                                  min_inliers=self.settings.min_pnp_inliers)
+                                  min_inliers=self.settings.min_pnp_inliers, covariance=False)
                 if again is not None:
                     T_w_prev = again.T_w_c
                     self._last = (reference, invert_transform(reference.T_w_c) @ T_w_prev)

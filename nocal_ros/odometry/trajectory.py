@@ -80,7 +80,7 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
         T_kf_cam[:3, 3] *= record.local_map.unit_scale / record.unit_scale  # the map moved into other units since
         guess = T_w_ref @ T_kf_cam
         x = calibration.undistorted_normalised(record.pixels[mask])
-        pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers)
+        pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers, covariance=False)
         if pnp is None:
             poses[record.frame] = FinalPose(record.map_id, record.local_map, guess, "keyframe_relative")
         else:
