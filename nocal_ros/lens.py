@@ -188,7 +188,7 @@ def _newton_undistort(target, D, model: str):
         step = np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1)
         step /= det[:, None]
         x = x - step
-        if not np.abs(step).max(initial=0.0) > 1e-9:  # quadratic: the next residual is far below 1e-14
+        if not (np.abs(step) > 1e-9).any():  # quadratic: the next residual is far below 1e-14 (NaN: careful solve)
             break
     residual = distort_normalised(x, D, model) - target
     j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
