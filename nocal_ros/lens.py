@@ -190,12 +190,9 @@ def _newton_undistort(target, D, model: str):
         x = x - step
         if not (np.abs(step) > 1e-9).any():  # quadratic: the next residual is far below 1e-14 (NaN: careful solve)
             break
-    residual = distort_normalised(x, D, model) - target
-    j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
     # Plain steps can land on a root past the fold (where the radial curve rises again), which the lens
     # does not image; only roots before the first fold count.
-    solved = (((residual**2).sum(-1) <= _UNDISTORT_TOLERANCE**2) & ((j00 * j11 - j01 * j10) > 0)
-              & ((x**2).sum(-1) < _first_fold(D, model)))
+    solved = _imaged_roots(x, target, D, model, _UNDISTORT_TOLERANCE**2)
     if not solved.all():
         rest = np.flatnonzero(~solved)
         x[rest] = _newton_undistort_careful(target[rest], D, model)
@@ -301,22 +298,27 @@ def _undistort_polynomial(xy_d, D, model: str):
     return _check_undistorted(_newton_undistort(flat, D, model), flat, D, model).reshape(shape)
 
 
-def _check_undistorted(x, target, D, model: str):
-    """NaN out points that do not reproduce ``target`` or lie past the fold (Jacobian det <= 0)."""
+def _imaged_roots(x, target, D, model: str, max_squared_residual: float):
+    """Which points ``x`` solve ``distort(x) = target`` to ``max_squared_residual`` where the lens images
+    them: before the fold (Jacobian det > 0)."""
     residual = distort_normalised(x, D, model) - target
     j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
     s = (x**2).sum(-1)
     radial, d_radial = _radial_and_derivative(s, D, model)
     # Past the fold r_d(r) = r R(r^2) turns back (R + 2 s R' <= 0), and further out R < 0 mirrors
     # points through the centre; roots there satisfy the equation but are not what the lens images.
-    ok = (
-        ((residual**2).sum(-1) <= 1e-18)
+    return (
+        ((residual**2).sum(-1) <= max_squared_residual)
         & ((j00 * j11 - j01 * j10) > 0)
         & (radial > 0)
         & (radial + 2 * s * d_radial > 0)
         & (s < _first_fold(D, model))  # a root where the curve rises again, past a fold, is no image either
     )
-    return np.where(ok[:, None], x, np.nan)
+
+
+def _check_undistorted(x, target, D, model: str):
+    """NaN out points that do not reproduce ``target`` or lie past the fold (:func:`_imaged_roots`)."""
+    return np.where(_imaged_roots(x, target, D, model, 1e-18)[:, None], x, np.nan)
 
 
 def _undistort_theta(theta_d, D):
