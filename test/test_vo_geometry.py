@@ -170,9 +170,13 @@ def test_tracks_keep_their_ids_follow_the_motion_and_spread_over_the_grid():
     np.testing.assert_allclose(moved.pixels - start.pixels[common], [[3.0, -2.0]] * int(common.sum()), atol=0.1)
     tracker.drop(moved.ids[:5])
     assert not np.isin(moved.ids[:5], tracker.current().ids).any()
-    # A frame wider than the work width is tracked smaller; coordinates stay native.
+    # A frame 1.5 times the work width or wider is tracked smaller; coordinates stay native.
+    somewhat_wide = FeatureTracker(TrackerSettings(max_tracks=80, work_width=240))
+    somewhat_wide.track(image)
+    assert somewhat_wide.gray.shape == (240, 320) and somewhat_wide.work_scale == (1.0, 1.0)
     wide = FeatureTracker(TrackerSettings(max_tracks=80, work_width=160))
     wide.track(image)
+    assert wide.gray.shape == (120, 160) and wide.work_scale == (2.0, 2.0)
     wide.top_up()
     before = wide.current()
     after = wide.track(shifted(image, 4.0, 0.0))
