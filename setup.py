@@ -19,8 +19,8 @@ from setuptools.command.develop import develop as SetuptoolsDevelop
 package_name = "nocal_ros"
 console_scripts = [
     "nocal = nocal_ros.cli:main",
-    "odometry_node = nocal_ros.ros.odometry_node:main",
-    "trainer_node = nocal_ros.ros.trainer_node:main",
+    "odometry_node = nocal_ros.ros.entry_points:odometry_node",
+    "trainer_node = nocal_ros.ros.entry_points:trainer_node",
 ]
 
 

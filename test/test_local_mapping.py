@@ -85,3 +85,56 @@ def test_a_keyframe_posed_before_a_solve_landed_is_posed_again_on_the_map_as_it_
     previous.map_version = local_map.version
     assert not mapping.pose_again(local_map, previous)
     np.testing.assert_array_equal(previous.T_w_c, before)
+
+
+SOLVER_MODULES_SCRIPT = """\
+import json, sys
+{top_level_import}
+
+
+def heavy_modules():
+    return sorted(m for m in ("torch", "rclpy") if m in sys.modules)
+
+
+if __name__ == "__main__":
+    import numpy as np
+    from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry.calibration import OnlineCamera
+    from nocal_ros.odometry.local_mapping import LocalMapping
+
+    calibration = CameraCalibration(64, 48, np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]))
+    mapping = LocalMapping(OnlineCamera(calibration, "file"), synchronous=False)
+    try:
+        print(json.dumps(mapping._solver_pool().submit(heavy_modules).result(timeout=120)))
+    finally:
+        mapping.close()
+"""
+
+
+def console_script_target(name: str) -> str:
+    """``module:function`` of one of setup.py's console scripts."""
+    import re
+    from pathlib import Path
+
+    setup = (Path(__file__).resolve().parents[1] / "setup.py").read_text()
+    (target,) = re.findall(rf'"{name} = ([\w.]+:\w+)"', setup)
+    return target
+
+
+@pytest.mark.parametrize(("executable", "imports_torch"), [("odometry_node", False), ("trainer_node", False), (None, True)])
+def test_the_solver_process_of_a_ros_executable_does_not_load_torch_or_rclpy(tmp_path, executable, imports_torch):
+    """A spawned process first runs its parent's main script again, top-level imports included; an
+    executable's script is ``from MODULE import FUNCTION`` (setup.py's console scripts), so the nodes'
+    entry points must load nothing heavy, or the solver process loads it too (torch: 2.8 s more before
+    the first solve, measured). The last case is a main script that imports torch: its solver does."""
+    if executable is None:
+        top_level_import = "import torch  # noqa: F401"
+    else:
+        module, function = console_script_target(executable).split(":")
+        assert module == "nocal_ros.ros.entry_points"
+        top_level_import = f"from {module} import {function}  # noqa: F401"
+    script = tmp_path / "main_script.py"
+    script.write_text(SOLVER_MODULES_SCRIPT.format(top_level_import=top_level_import))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == (["torch"] if imports_torch else [])

@@ -124,7 +124,10 @@ class LocalMapping:
     A solve is Python and numpy on small arrays, which hold Python's global interpreter lock for most
     of their time (GTSAM, the solver before, held it for a whole solve: a thread beside it stalled;
     BENCHMARKS.md), so in a thread a bundle adjustment would slow tracking down. The worker thread
-    therefore hands each solve to a worker process and waits for it without the lock.
+    therefore hands each solve to a worker process and waits for it without the lock. That process is
+    spawned, so it first runs the program's main script again, its top-level imports included: a program
+    that runs the estimator asynchronously should import torch (or rclpy) inside functions, not at the top
+    of its main script, as the ROS executables do (:mod:`nocal_ros.ros.entry_points`).
     When keyframes arrive faster than they are mapped, the waiting ones are all triangulated and one
     bundle adjustment covers them (counted in ``merged``), so mapping never falls further behind.
     """
