@@ -1,7 +1,7 @@
 """The shipped pose head on real non-4:3 recordings, with the frames cropped or stretched (the core's map).
 
-Replays a bag imported by ``nocal import`` through ``nocal odometry`` (pose head only, ``--no-two-view``,
-so every figure is the pose head's) with ``PoseRunner.load_frame`` fed by either mapping, and prints
+Replays a bag imported by ``nocal import`` through ``nocal odometry`` (pose head only, ``--method pose_head``,
+so every figure is the pose head's) with the pose head's runner fed by either mapping, and prints
 the relative pose error per pair against the bag's ground truth, and the translation length ratio
 (predicted / true; the shipped head's length is not metric on unseen cameras, so both are shown).
 
@@ -41,7 +41,7 @@ for bag in args.bags:
     for name in ("crop", "stretch"):
         pose_head.network_input = policy_input(name)
         with tempfile.TemporaryDirectory() as out:
-            argv = ["odometry", str(bag), "--out", out, "--no-two-view", "--threads", "1", "--no-progress", "--overwrite"]
+            argv = ["odometry", str(bag), "--out", out, "--method", "pose_head", "--threads", "1", "--no-progress", "--overwrite"]
             if args.max_frames:
                 argv += ["--max-frames", str(args.max_frames)]
             assert main(argv) == 0
