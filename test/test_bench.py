@@ -25,8 +25,9 @@ def test_bench_times_the_keyframe_vo_and_counts_every_frame_of_the_real_time_rep
     # Every frame sent is either processed or counted as dropped, none lost silently.
     assert realtime["frames_processed"] + realtime["frames_dropped"] == realtime["frames_sent"] == 30
     assert realtime["latency"]["count"] == realtime["frames_processed"]
+    assert realtime["worker_cpu"]["count"] == realtime["frames_processed"] and realtime["worker_cpu"]["median_ms"] > 0
     text = format_bench(report)
-    assert "tracking (frontend + PnP)" in text and "real time at 30 Hz" in text
+    assert "tracking (frontend + PnP)" in text and "real time at 30 Hz" in text and "worker CPU" in text
 
 
 def test_bench_rejects_a_non_positive_rate():

@@ -444,3 +444,14 @@ def test_replay_at_rate_hands_the_newest_item_to_a_busy_worker_and_counts_the_re
     slow = replay_at_rate(list(range(20)), 100.0, lambda index, item: (seen.append(item), time.sleep(0.05)))
     assert slow.handled + slow.dropped == 20 and slow.dropped >= 10
     assert seen[0] == 0 and seen == sorted(seen) and len(seen) == slow.handled
+    # The worker's CPU time counts the handling's work, not its waiting: 50 ms asleep is almost no CPU,
+    # 20 ms of arithmetic is about 20 ms.
+    assert len(slow.cpu_ms) == slow.handled and max(slow.cpu_ms) < 25
+
+    def busy(index, item, seconds=0.02):
+        end = time.thread_time() + seconds
+        while time.thread_time() < end:
+            pass
+
+    worked = replay_at_rate(list(range(3)), 10.0, busy)
+    assert worked.handled == 3 and min(worked.cpu_ms) >= 19.0

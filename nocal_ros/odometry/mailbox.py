@@ -47,11 +47,14 @@ class FrameMailbox:
 
 @dataclass
 class RateReplay:
-    """What :func:`replay_at_rate` saw: items handled and dropped, and each handled item's latency."""
+    """What :func:`replay_at_rate` saw: items handled and dropped, each handled item's latency, and the
+    worker thread's CPU time for each (its cost with the other threads' work left out: the machine's
+    share of a live stream's budget that the handling itself takes)."""
 
     handled: int
     dropped: int
     latencies_ms: list[float]
+    cpu_ms: list[float]
 
 
 def replay_at_rate(items: Sequence[Any], rate_hz: float, handle: Callable[[int, Any], None]) -> RateReplay:
@@ -63,6 +66,7 @@ def replay_at_rate(items: Sequence[Any], rate_hz: float, handle: Callable[[int, 
     """
     mailbox = FrameMailbox(latest_only=True)
     latencies: list[float] = []
+    cpu: list[float] = []
     handled = [0]
 
     def work() -> None:
@@ -71,7 +75,9 @@ def replay_at_rate(items: Sequence[Any], rate_hz: float, handle: Callable[[int, 
             if entry is None:
                 return
             arrived, index, item = entry
+            started = time.thread_time()
             handle(index, item)
+            cpu.append((time.thread_time() - started) * 1e3)
             latencies.append((time.perf_counter() - arrived) * 1e3)
             handled[0] += 1
 
@@ -85,4 +91,4 @@ def replay_at_rate(items: Sequence[Any], rate_hz: float, handle: Callable[[int, 
         mailbox.put((time.perf_counter(), index, item))
     mailbox.close()
     worker.join()
-    return RateReplay(handled[0], mailbox.dropped, latencies)
+    return RateReplay(handled[0], mailbox.dropped, latencies, cpu)

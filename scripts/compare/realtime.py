@@ -5,9 +5,9 @@
 The node's way: a one-slot mailbox (a frame that arrives while another is being processed replaces the
 waiting one and is counted as dropped), a worker thread that processes the newest frame, and local
 mapping in its own thread and process (``nocal odometry`` maps synchronously instead, so that a
-replay repeats exactly). Prints the frames processed and dropped, the online camera's errors, and the
-RPE over consecutive processed frames and APE Sim(3) against the bag's ground truth. Runs differ
-from run to run: they depend on the machine's timing.
+replay repeats exactly). Prints the frames processed and dropped, the worker thread's CPU time per
+frame, the online camera's errors, and the RPE over consecutive processed frames and APE Sim(3)
+against the bag's ground truth. Runs differ from run to run: they depend on the machine's timing.
 """
 
 from __future__ import annotations
@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     camera = evaluation.calibration_errors(estimator.camera_info()[0], sequence.calibration)
     rpe = evaluation.relative_pose_error(estimate, truth)
     ape = evaluation.absolute_pose_error(estimate, truth, correct_scale=True)
-    print(f"{args.bag} at {rate:g} Hz: {len(frames)} of {len(stamps)} frames processed, {replay.dropped} dropped; "
+    print(f"{args.bag} at {rate:g} Hz: {len(frames)} of {len(stamps)} frames processed, {replay.dropped} dropped "
+          f"(worker CPU per frame: median {np.median(replay.cpu_ms):.1f} ms, mean {np.mean(replay.cpu_ms):.1f} ms); "
           f"focal {camera['focal_error_percent']:.2f} %, dr {camera['dr']:.4f}; RPE over processed pairs "
           f"{rpe['translation_m']['rmse']:.4f} m / {rpe['rotation_deg']['rmse']:.3f} deg; APE Sim(3) {ape['rmse']:.4f} m "
           f"(scale {ape['scale']:.3f}); {len(estimator.timings()['bundle_adjustment'])} bundle adjustments for "
