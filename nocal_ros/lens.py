@@ -171,6 +171,15 @@ def _distortion_jacobian(x, y, D, model: str):
     return j00, j01, j01, j11
 
 
+def _newton_step(x, residual, D, model: str):
+    """``J(x)^-1 residual`` for float64 numpy points ``(N, 2)``: what a Newton step on ``distort(x) = target``
+    subtracts (a singular Jacobian's determinant taken as 1)."""
+    j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
+    det = j00 * j11 - j01 * j10
+    det = np.where(np.abs(det) > 1e-300, det, 1.0)
+    return np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1) / det[:, None]
+
+
 def _newton_undistort(target, D, model: str):
     """Newton on ``distort(x) = target`` for float64 numpy points ``(N, 2)``.
 
@@ -181,12 +190,7 @@ def _newton_undistort(target, D, model: str):
     """
     x = target.copy()
     for _ in range(_UNDISTORT_PLAIN_ITERATIONS):
-        residual = distort_normalised(x, D, model) - target
-        j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
-        det = j00 * j11 - j01 * j10
-        det = np.where(np.abs(det) > 1e-300, det, 1.0)
-        step = np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1)
-        step /= det[:, None]
+        step = _newton_step(x, distort_normalised(x, D, model) - target, D, model)
         x = x - step
         if not (np.abs(step) > 1e-9).any():  # quadratic: the next residual is far below 1e-14 (NaN: careful solve)
             break
@@ -248,10 +252,7 @@ def _newton_undistort_careful(target, D, model: str):
         if active.size == 0:
             break
         xa, ra, ea = x[active], residual[active], error[active]
-        j00, j01, j10, j11 = _distortion_jacobian(xa[:, 0], xa[:, 1], D, model)
-        det = j00 * j11 - j01 * j10
-        det = np.where(np.abs(det) > 1e-300, det, 1.0)
-        step = -np.stack((j11 * ra[:, 0] - j01 * ra[:, 1], -j10 * ra[:, 0] + j00 * ra[:, 1]), -1) / det[:, None]
+        step = -_newton_step(xa, ra, D, model)
         alpha = np.ones(len(active))
         pending = np.ones(len(active), dtype=bool)
         # Backtracking: strong distortion bends the map enough for a full step to overshoot.
