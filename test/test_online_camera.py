@@ -68,3 +68,35 @@ def test_an_initialisation_replaces_what_the_windows_carried_and_a_reset_starts_
     mean, information = camera.prior()
     np.testing.assert_allclose(mean, camera_parameters(restart), rtol=1e-12)
     np.testing.assert_array_equal(information, camera.initial_information)
+
+
+def test_a_new_map_starts_from_all_the_camera_was_told_and_its_initialisations_keep_it():
+    start = camera_with(100.0, 100.0)
+    camera = OnlineCamera(start, "file")
+    mean, information = camera.begin_map()  # nothing told yet: the start exactly
+    np.testing.assert_array_equal(mean, camera_parameters(start))
+    np.testing.assert_array_equal(information, camera.initial_information)
+
+    start_information = np.diag(camera.initial_information).copy()
+    window = np.diag(2.0 * start_information)
+    first = camera_with(110.0, 108.0, -0.1)
+    camera.update(first, np.eye(8), window, kept_share=0.75)
+    # The old map's last window is seen by no later window: all of it counts, once.
+    mean, information = camera.begin_map()
+    np.testing.assert_allclose(np.diag(information), 3.0 * start_information, rtol=1e-12)
+    np.testing.assert_allclose(mean, (camera_parameters(start) + 2.0 * camera_parameters(first)) / 3.0, rtol=1e-12)
+    carried_mean, carried_information = camera.prior()
+    np.testing.assert_allclose(carried_mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(carried_information, information, rtol=1e-12)
+
+    # The new map's initialisation replaces what its own windows carried, and keeps the map's start.
+    camera.update(camera_with(150.0, 150.0), np.eye(8), window, kept_share=0.5)
+    second = camera_with(114.0, 112.0, -0.12)
+    camera.update(second, np.eye(8), window, kept_share=0.5, initialisation=True, start=(mean, information))
+    prior_mean, prior_information = camera.prior()
+    np.testing.assert_allclose(np.diag(prior_information), 4.0 * start_information, rtol=1e-12)
+    np.testing.assert_allclose(prior_mean, (3.0 * mean + camera_parameters(second)) / 4.0, rtol=1e-12)
+    # A map's initialisation prior is its start, the principal point anchor aside (a file's has none).
+    anchored_mean, anchored_information = anchored_prior(camera, initial=True, start=(mean, information))
+    np.testing.assert_array_equal(anchored_mean, mean)
+    np.testing.assert_array_equal(anchored_information, information)

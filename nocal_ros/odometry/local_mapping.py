@@ -264,6 +264,8 @@ class LocalMapping:
     def _run(self, batch: list[tuple[LocalMap, Keyframe]]) -> None:
         start = time.perf_counter()
         for local_map, keyframe in batch:
+            if local_map.camera_start is None:  # the map's first keyframe here: the earlier maps are done
+                local_map.camera_start = self.camera.begin_map()
             self.camera.keyframes += 1
             self.pose_again(local_map, keyframe)
             self.triangulate(local_map, keyframe)
@@ -445,7 +447,7 @@ class LocalMapping:
         # A keyframe none of whose observations made it into the window's landmarks cannot be moved.
         fixed |= np.bincount(rows, minlength=len(window)) == 0
         calibration = self.camera.calibration
-        prior_mean, prior_information = anchored_prior(self.camera, initial=initialise)
+        prior_mean, prior_information = anchored_prior(self.camera, initial=initialise, start=local_map.camera_start)
         prior = CameraPrior(calibration_from_parameters(prior_mean, calibration), prior_information)
         freedom = self.camera_freedom(initialise, len(window), whole_map)
         if whole_map and self.camera.updates == 0 and not self.camera.given:
@@ -519,7 +521,8 @@ class LocalMapping:
                 kept = min(len(window) - held, self.settings.window) - 1
                 self.camera.update(solution.calibration, solution.camera_covariance,
                                    window_information(solution.camera_covariance, prior_information),
-                                   kept_share=kept / (len(window) - held), initialisation=initialise)
+                                   kept_share=kept / (len(window) - held), initialisation=initialise,
+                                   start=local_map.camera_start)
 
 
 

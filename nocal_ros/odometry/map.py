@@ -59,6 +59,10 @@ class LocalMap:
     #: Counts the changes applied (bundle adjustments, similarity moves): tracking poses its previous frame
     #: again when it changed, and local mapping a keyframe posed in an older version.
     version: int = 0
+    #: What the camera was known to be before this map's first keyframe was mapped, ``(mean parameters
+    #: (8,), information (8, 8))`` (``OnlineCamera.begin_map``): the prior of the map's camera
+    #: initialisations, which hold none of the earlier maps' observations. None: the starting camera's.
+    camera_start: tuple[np.ndarray, np.ndarray] | None = None
     #: The map's unit now in units of the map as it was made (:meth:`transform` changes it).
     unit_scale: float = 1.0
 
