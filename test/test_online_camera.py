@@ -100,3 +100,33 @@ def test_a_new_map_starts_from_all_the_camera_was_told_and_its_initialisations_k
     anchored_mean, anchored_information = anchored_prior(camera, initial=True, start=(mean, information))
     np.testing.assert_array_equal(anchored_mean, mean)
     np.testing.assert_array_equal(anchored_information, information)
+
+
+def test_a_refinement_keeps_what_the_keyframes_older_than_its_span_told_the_camera():
+    start = camera_with(100.0, 100.0)
+    camera = OnlineCamera(start, "file")
+    s = np.diag(camera.initial_information).copy()
+    window = np.diag(2.0 * s)
+    estimates = [camera_with(104.0 + k, 103.0 + k, -0.1 * k) for k in range(3)]
+    for k, estimate in enumerate(estimates):  # each window leaves its oldest keyframe k with a quarter
+        camera.update(estimate, np.eye(8), window, kept_share=0.75, leaving=[k])
+    # An initialisation from keyframe 0 on holds them all: the start alone, as it is.
+    mean, information = camera.initialisation_start(None, 0)
+    np.testing.assert_array_equal(mean, camera_parameters(start))
+    np.testing.assert_array_equal(information, camera.initial_information)
+    # From keyframe 2 on: the start and what keyframes 0 and 1 carried.
+    mean, information = camera.initialisation_start(None, 2)
+    np.testing.assert_allclose(np.diag(information), 2.0 * s, rtol=1e-12)
+    expected = (camera_parameters(start) + 0.5 * (camera_parameters(estimates[0]) + camera_parameters(estimates[1]))) / 2.0
+    np.testing.assert_allclose(mean, expected, rtol=1e-12)
+
+    # It replaces what keyframe 2 on carried and keeps the older keyframes' share.
+    solved = camera_with(108.0, 107.0, -0.05)
+    camera.update(solved, np.eye(8), window, kept_share=0.5, initialisation=True, first_keyframe=2, leaving=[2, 3])
+    prior_mean, prior_information = camera.prior()
+    np.testing.assert_allclose(np.diag(prior_information), 3.0 * s, rtol=1e-12)
+    np.testing.assert_allclose(prior_mean, (2.0 * mean + camera_parameters(solved)) / 3.0, rtol=1e-12)
+    # A later refinement, from keyframe 4 on, starts from all of it.
+    later_mean, later_information = camera.initialisation_start(None, 4)
+    np.testing.assert_allclose(later_mean, prior_mean, rtol=1e-12)
+    np.testing.assert_allclose(later_information, prior_information, rtol=1e-12)

@@ -176,15 +176,21 @@ class OnlineCamera:
         #: significant (``local_mapping.TANGENTIAL_SIGNIFICANCE``); else they stay where they started.
         self.tangential = False
 
-    def _carry_from_start(self, start: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-        """Carry only ``start`` (``(mean, information)``; the starting camera's by default) from here on."""
+    def _carry_from_start(self, start: tuple[np.ndarray, np.ndarray] | None = None,
+                          gains: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        """Carry only ``start`` (``(mean, information)``; the starting camera's by default) and ``gains``
+        (keyframe index -> what the windows carried when it left them) from here on."""
         from nocal_ros.odometry.bundle_adjustment import camera_parameters
 
         mean, information = start if start is not None else (camera_parameters(self.initial_calibration),
                                                              self.initial_information)
+        self._gains: dict[int, tuple[np.ndarray, np.ndarray]] = dict(gains or {})
         self.prior_information: np.ndarray = information
         # The information-weighted sum of the estimates the carried information is about.
         self._prior_weighted = information @ mean
+        for gained, weighted in self._gains.values():
+            self.prior_information = self.prior_information + gained
+            self._prior_weighted = self._prior_weighted + weighted
         # The last window's share that the next window holds again (so it is not carried yet).
         self._held_information = np.zeros_like(information)
         self._held_weighted = np.zeros_like(self._prior_weighted)
@@ -221,7 +227,32 @@ class OnlineCamera:
             self._prior_weighted = self._prior_weighted + self._held_weighted
             self._held_information = np.zeros_like(self._held_information)
             self._held_weighted = np.zeros_like(self._held_weighted)
+            self._gains = {}  # the old map's keyframes: no initialisation of the new map holds them
             return np.linalg.solve(self.prior_information, self._prior_weighted), self.prior_information
+
+    def initialisation_start(self, start: tuple[np.ndarray, np.ndarray] | None,
+                             first_keyframe: int) -> tuple[np.ndarray, np.ndarray]:
+        """The prior of a camera initialisation over the map's keyframes from ``first_keyframe`` on, as
+        ``(mean parameters (8,), information (8, 8))``: the map's ``start`` (the starting camera's where
+        None) and what the windows carried as the map's older keyframes left them.
+
+        Without the older keyframes, each refinement over the map's last 40 keyframes started again from
+        the map's start, and the camera forgot everything older than its span: on all 736 frames of VAMR
+        one refinement moved the focal length from 1.2 % to 4.4 % off, and it stayed there (measured).
+        """
+        from nocal_ros.odometry.bundle_adjustment import camera_parameters
+
+        mean, information = start if start is not None else (camera_parameters(self.initial_calibration),
+                                                             self.initial_information)
+        with self._lock:
+            older = [gain for index, gain in self._gains.items() if index < first_keyframe]
+        if not older:
+            return mean, information
+        weighted = information @ mean
+        for gained, gained_weighted in older:
+            information = information + gained
+            weighted = weighted + gained_weighted
+        return np.linalg.solve(information, weighted), information
 
     @property
     def calibration(self) -> CameraCalibration:
@@ -252,7 +283,8 @@ class OnlineCamera:
 
     def update(self, calibration: CameraCalibration, covariance: np.ndarray | None,
                window_information: np.ndarray | None = None, kept_share: float = 0.0,
-               initialisation: bool = False, start: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+               initialisation: bool = False, start: tuple[np.ndarray, np.ndarray] | None = None,
+               first_keyframe: int = 0, leaving: tuple[int, ...] | list[int] = ()) -> None:
         """Take a bundle adjustment's camera.
 
         ``window_information``: the information about the camera that the window's observations alone
@@ -260,9 +292,11 @@ class OnlineCamera:
         (``1 - kept_share``) is added to the prior of the next windows, about this window's estimate:
         counting the window's observations only once, since the next window holds the rest of them
         again.
-        ``initialisation``: the solve covered every keyframe the carried information came from, so it
-        replaces that information instead of adding to it; ``start``: what was known before the map's
-        first keyframe (its prior), which it does not replace (the starting camera's by default).
+        ``leaving``: the map's keyframes that share leaves with (it is split evenly among them), so that
+        an initialisation can keep what keyframes older than its span told the camera.
+        ``initialisation``: the solve covered the keyframes from ``first_keyframe`` on, so it replaces
+        what they carried instead of adding to it; ``start``: what was known before the map's first
+        keyframe (its prior), which it does not replace (the starting camera's by default).
         """
         from nocal_ros.odometry.bundle_adjustment import camera_parameters
 
@@ -270,12 +304,19 @@ class OnlineCamera:
             self._calibration = calibration
             self.covariance = covariance
             if initialisation:
-                self._carry_from_start(start)
+                # Later initialisations start later still: the older keyframes' gains are kept as one.
+                older = [g for k, g in self._gains.items() if k < first_keyframe]
+                merged = {-1: (sum(g[0] for g in older), sum(g[1] for g in older))} if older else {}
+                self._carry_from_start(start, merged)
             if window_information is not None:
                 parameters = camera_parameters(calibration)
                 gained = (1.0 - float(kept_share)) * window_information
                 self.prior_information = self.prior_information + gained
                 self._prior_weighted = self._prior_weighted + gained @ parameters
+                for index in leaving:
+                    share = gained / len(leaving)
+                    before, before_weighted = self._gains.get(index, (0.0, 0.0))
+                    self._gains[int(index)] = (before + share, before_weighted + share @ parameters)
                 self._held_information = float(kept_share) * window_information
                 self._held_weighted = self._held_information @ parameters
             self.updates += 1
