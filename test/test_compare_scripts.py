@@ -169,3 +169,23 @@ def test_pose_head_lengths_against_a_pose_head_that_measures_twice_the_length(tm
         np.testing.assert_allclose(ratios[gap], 2.0, rtol=1e-5)
     assert script.main([str(bag), "--gaps", "1", "2"]) == 0  # the shipped model
     assert capsys.readouterr().out.startswith("bag: pose head length / true length, median: gap 1: ")
+
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+if not REAL.is_dir():
+    REAL = Path("/work/shared/data/real")
+
+
+@pytest.mark.skipif(not (REAL / "vamr_ex1").is_dir(), reason=f"real recordings not present at {REAL}")
+def test_vamr_board_motion_sees_the_hand_move_the_board_and_not_the_camera_alone(capsys):
+    """Frames 150 -> 160: the camera moves, board and desk alike; 420 -> 430: a hand moves the board."""
+    script = load_script("vamr_board_motion")
+    assert script.main([str(REAL / "vamr_ex1"), "--gap", "10", "--frames", "150", "420"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    ratios = {line.split(":")[0]: float(line.rsplit("ratio", 1)[1]) for line in lines}
+    print(ratios)
+    assert set(ratios) == {"150->160", "420->430"}
+    assert 0.5 < ratios["150->160"] < 2.0  # measured 1.1
+    assert ratios["420->430"] > 4.0  # measured 8.6
+    with pytest.raises(SystemExit):
+        script.main([str(REAL)])  # no images there: refused

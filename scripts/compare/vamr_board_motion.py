@@ -1,7 +1,7 @@
 """Whether VAMR's checkerboard moves against the desk: the median pixel motion of the board's corners
 and of the desk's corners from frame k to k + GAP, with OpenCV alone.
 
-    python scripts/compare/vamr_board_motion.py ../shared/data/real/vamr_ex1 [--gap 10] [--every 30]
+    python scripts/compare/vamr_board_motion.py ../shared/data/real/vamr_ex1 [--gap 10] [--every 30 | --frames K ...]
 
 The recording's poses are the camera's against the board, so where a hand moves the board they are not
 the camera's motion against the rest of the scene, which is what a VO measures. Desk corners are taken
@@ -24,6 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("folder", help="the vamr_ex1 folder (images/img_0001.jpg ...)")
     parser.add_argument("--gap", type=int, default=10)
     parser.add_argument("--every", type=int, default=30)
+    parser.add_argument("--frames", type=int, nargs="+", help="these start frames instead of every --every")
     args = parser.parse_args(argv)
     images = sorted((Path(args.folder) / "images").glob("img_*.jpg"))
     if not images:
@@ -32,7 +33,10 @@ def main(argv: list[str] | None = None) -> int:
     def grey(k: int) -> np.ndarray:
         return cv2.imread(str(images[k]), cv2.IMREAD_GRAYSCALE)
 
-    for k in range(0, len(images) - args.gap, args.every):
+    starts = args.frames if args.frames else range(0, len(images) - args.gap, args.every)
+    for k in starts:
+        if not 0 <= k < len(images) - args.gap:
+            parser.error(f"frame {k} and {k} + {args.gap} must be among the {len(images)} frames")
         a, b = grey(k), grey(k + args.gap)
         found_a, corners_a = cv2.findChessboardCorners(a, (9, 6))
         found_b, corners_b = cv2.findChessboardCorners(b, (9, 6))
