@@ -75,11 +75,9 @@ def anchored_prior(camera: "OnlineCamera", initial: bool = False,
     which holds the carried windows' observations itself); for a camera that was not given calibrated,
     combined with :data:`PRINCIPAL_POINT_ANCHOR_STD` about the image centre.
     """
-    from nocal_ros.odometry.bundle_adjustment import camera_parameters
-
     if initial:
         calibration = camera.initial_calibration
-        mean, information = start if start is not None else (camera_parameters(calibration), camera.initial_information)
+        mean, information = start if start is not None else camera.starting_prior()
     else:
         calibration = camera.calibration
         mean, information = camera.prior()
@@ -176,14 +174,17 @@ class OnlineCamera:
         #: significant (``local_mapping.TANGENTIAL_SIGNIFICANCE``); else they stay where they started.
         self.tangential = False
 
+    def starting_prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """What was known before any window: ``(the starting camera's parameters (8,), information (8, 8))``."""
+        from nocal_ros.odometry.bundle_adjustment import camera_parameters
+
+        return camera_parameters(self.initial_calibration), self.initial_information
+
     def _carry_from_start(self, start: tuple[np.ndarray, np.ndarray] | None = None,
                           gains: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         """Carry only ``start`` (``(mean, information)``; the starting camera's by default) and ``gains``
         (keyframe index -> what the windows carried when it left them) from here on."""
-        from nocal_ros.odometry.bundle_adjustment import camera_parameters
-
-        mean, information = start if start is not None else (camera_parameters(self.initial_calibration),
-                                                             self.initial_information)
+        mean, information = start if start is not None else self.starting_prior()
         self._gains: dict[int, tuple[np.ndarray, np.ndarray]] = dict(gains or {})
         self.prior_information: np.ndarray = information
         # The information-weighted sum of the estimates the carried information is about.
@@ -218,11 +219,9 @@ class OnlineCamera:
         initialisation of a map after a loss moved a converged focal length by 1.4-5.4 % (measured on
         rendered 160x120 rooms, a cut after 80 frames).
         """
-        from nocal_ros.odometry.bundle_adjustment import camera_parameters
-
         with self._lock:
             if self.updates == 0:  # nothing yet: the start as it is
-                return camera_parameters(self.initial_calibration), self.initial_information
+                return self.starting_prior()
             self.prior_information = self.prior_information + self._held_information
             self._prior_weighted = self._prior_weighted + self._held_weighted
             self._held_information = np.zeros_like(self._held_information)
@@ -240,10 +239,7 @@ class OnlineCamera:
         the map's start, and the camera forgot everything older than its span: on all 736 frames of VAMR
         one refinement moved the focal length from 1.2 % to 4.4 % off, and it stayed there (measured).
         """
-        from nocal_ros.odometry.bundle_adjustment import camera_parameters
-
-        mean, information = start if start is not None else (camera_parameters(self.initial_calibration),
-                                                             self.initial_information)
+        mean, information = start if start is not None else self.starting_prior()
         with self._lock:
             older = [gain for index, gain in self._gains.items() if index < first_keyframe]
         if not older:
