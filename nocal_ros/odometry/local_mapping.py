@@ -159,7 +159,7 @@ class LocalMapping:
         if not synchronous:
             # Start the solver process now, before the first keyframe: spawning it and importing the
             # solver would otherwise delay the first bundle adjustment (seconds under load, measured).
-            self._solver_pool().submit(_import_solver)
+            self._solver = start_solver()
 
     # -- thread handling ---------------------------------------------------------------------------
 
@@ -261,10 +261,7 @@ class LocalMapping:
 
     def _solver_pool(self) -> Any:
         if self._solver is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            self._solver = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._solver = start_solver()
         return self._solver
 
     # -- the work ----------------------------------------------------------------------------------
@@ -541,6 +538,17 @@ class LocalMapping:
                                    kept_share=kept / (len(window) - held), initialisation=initialise,
                                    start=local_map.camera_start, first_keyframe=first, leaving=leaving)
 
+
+
+def start_solver() -> Any:
+    """A solver process (a one-worker ``ProcessPoolExecutor``, spawned), already loading the solver: also
+    the one that replaces a process that died, whose first solve would otherwise pay the imports."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    solver = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    solver.submit(_import_solver)
+    return solver
 
 
 def _import_solver() -> None:

@@ -427,6 +427,7 @@ class OdometryNode(Node):
         self.mailbox.close()
         if self._worker.is_alive():
             self._worker.join(timeout=5.0)
+        self.estimator.close()  # local mapping's thread and its solver process
         self._jump_handle.unregister()
         super().destroy_node()
 
