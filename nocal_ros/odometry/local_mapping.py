@@ -539,7 +539,6 @@ class LocalMapping:
                                    start=local_map.camera_start, first_keyframe=first, leaving=leaving)
 
 
-
 def start_solver() -> Any:
     """A solver process (a one-worker ``ProcessPoolExecutor``, spawned), already loading the solver: also
     the one that replaces a process that died, whose first solve would otherwise pay the imports."""
