@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from real_recordings import REAL, needs_real
 
 from nocal_ros import evaluation
 from nocal_ros.data.bags import write_sequence
@@ -171,12 +172,7 @@ def test_pose_head_lengths_against_a_pose_head_that_measures_twice_the_length(tm
     assert capsys.readouterr().out.startswith("bag: pose head length / true length, median: gap 1: ")
 
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
-
-
-@pytest.mark.skipif(not (REAL / "vamr_ex1").is_dir(), reason=f"real recordings not present at {REAL}")
+@needs_real("vamr_ex1")
 def test_vamr_board_motion_sees_the_hand_move_the_board_and_not_the_camera_alone(capsys):
     """Frames 150 -> 160: the camera moves, board and desk alike; 420 -> 430: a hand moves the board."""
     script = load_script("vamr_board_motion")

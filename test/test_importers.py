@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from real_recordings import REAL, needs_real
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
@@ -23,9 +24,6 @@ from nocal_ros.errors import ConfigError, DatasetError
 from nocal_ros.lens import CameraCalibration
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
 
 
 def image_messages(bag: Path) -> list:
@@ -492,10 +490,8 @@ def test_write_recording_streams_one_frame_at_a_time(tmp_path):
 # the real sequences (../shared/data/real/README.md)
 # --------------------------------------------------------------------------------------------------
 
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"real recordings not present at {REAL}")
 
-
-@needs_real
+@needs_real("kitti_clip")
 def test_real_kitti_clip(tmp_path):
     recording = open_recording("kitti", REAL / "kitti_clip")
     assert len(recording) == 51 and recording.size == (1241, 376) and recording.encoding == "mono8"
@@ -511,7 +507,7 @@ def test_real_kitti_clip(tmp_path):
     np.testing.assert_allclose(replay.ground_truth, recording.ground_truth[:10], atol=1e-6)
 
 
-@needs_real
+@needs_real("vamr_ex1")
 def test_real_vamr_ex1(tmp_path):
     recording = open_recording("vamr", REAL / "vamr_ex1")
     assert len(recording) == 736 and recording.size == (752, 480) and recording.encoding == "mono8"

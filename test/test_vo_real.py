@@ -7,21 +7,14 @@ runs it. Skipped where the recordings are not present.
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
-import pytest
+from real_recordings import REAL, needs_real
 
 from nocal_ros import evaluation
 from nocal_ros.data.importers import open_recording
 from nocal_ros.odometry import OdometryEstimator
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
 
-
-@pytest.mark.skipif(not (REAL / "vamr_ex1").is_dir(), reason=f"real recordings not present at {REAL}")
+@needs_real("vamr_ex1")
 def test_the_online_camera_converges_over_a_whole_real_recording_and_keeps_it():
     """Measured (docs/RESULTS.md, "The camera kept through a new map and over a long stream"): focal
     error 0.97 % and ``dr`` 0.046 at the end, no frame lost; before the camera kept what it had learnt
