@@ -155,6 +155,16 @@ def initial_information(calibration: CameraCalibration, source: str) -> np.ndarr
     return calibration_information(calibration, GIVEN_CALIBRATION_STD if source == "file" else GUESS_STD)
 
 
+def _with_gains(mean: np.ndarray, information: np.ndarray, gains) -> tuple[np.ndarray, np.ndarray]:
+    """``(information, information-weighted sum of estimates)`` of a prior ``(mean, information)`` and the
+    carried ``gains`` (``(information, weighted)`` pairs) added to it."""
+    weighted = information @ mean
+    for gained, gained_weighted in gains:
+        information = information + gained
+        weighted = weighted + gained_weighted
+    return information, weighted
+
+
 class OnlineCamera:
     """The current calibration, its covariance and the information carried between windows (thread-safe)."""
 
@@ -186,12 +196,8 @@ class OnlineCamera:
         (keyframe index -> what the windows carried when it left them) from here on."""
         mean, information = start if start is not None else self.starting_prior()
         self._gains: dict[int, tuple[np.ndarray, np.ndarray]] = dict(gains or {})
-        self.prior_information: np.ndarray = information
-        # The information-weighted sum of the estimates the carried information is about.
-        self._prior_weighted = information @ mean
-        for gained, weighted in self._gains.values():
-            self.prior_information = self.prior_information + gained
-            self._prior_weighted = self._prior_weighted + weighted
+        # _prior_weighted: the information-weighted sum of the estimates the carried information is about.
+        self.prior_information, self._prior_weighted = _with_gains(mean, information, self._gains.values())
         # The last window's share that the next window holds again (so it is not carried yet).
         self._held_information = np.zeros_like(information)
         self._held_weighted = np.zeros_like(self._prior_weighted)
@@ -241,14 +247,15 @@ class OnlineCamera:
         """
         mean, information = start if start is not None else self.starting_prior()
         with self._lock:
-            older = [gain for index, gain in self._gains.items() if index < first_keyframe]
+            older = self._gains_before(first_keyframe)
         if not older:
             return mean, information
-        weighted = information @ mean
-        for gained, gained_weighted in older:
-            information = information + gained
-            weighted = weighted + gained_weighted
+        information, weighted = _with_gains(mean, information, older)
         return np.linalg.solve(information, weighted), information
+
+    def _gains_before(self, first_keyframe: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The carried gains of the map's keyframes before ``first_keyframe`` (the caller holds the lock)."""
+        return [gain for index, gain in self._gains.items() if index < first_keyframe]
 
     @property
     def calibration(self) -> CameraCalibration:
@@ -301,7 +308,7 @@ class OnlineCamera:
             self.covariance = covariance
             if initialisation:
                 # Later initialisations start later still: the older keyframes' gains are kept as one.
-                older = [g for k, g in self._gains.items() if k < first_keyframe]
+                older = self._gains_before(first_keyframe)
                 merged = {-1: (sum(g[0] for g in older), sum(g[1] for g in older))} if older else {}
                 self._carry_from_start(start, merged)
             if window_information is not None:
