@@ -130,3 +130,36 @@ def test_a_refinement_keeps_what_the_keyframes_older_than_its_span_told_the_came
     later_mean, later_information = camera.initialisation_start(None, 4)
     np.testing.assert_allclose(later_mean, prior_mean, rtol=1e-12)
     np.testing.assert_allclose(later_information, prior_information, rtol=1e-12)
+
+
+def test_a_given_calibrations_check_rejects_it_by_its_wald_statistic_and_then_holds_it_as_a_guess():
+    """The check's statistic is ``d^T (C_check + C_given)^-1 d`` over (fx, fy), computed here by hand:
+    a calibration that the stream contradicts beyond it (and by 4 % or more) becomes a guess, one it
+    does not is confirmed once the check's focal length is known to 1 %, and stays pending before."""
+    from nocal_ros.odometry.calibration import (GIVEN_CALIBRATION_STD, GIVEN_CHECK_SIGNIFICANCE, GUESS_STD,
+                                                calibration_information)
+
+    given = camera_with(100.0, 100.0)
+    given_variance = (GIVEN_CALIBRATION_STD["focal"] * 100.0) ** 2
+
+    def check(fx: float, fy: float, std: float, final: bool = False) -> tuple[OnlineCamera, str]:
+        camera = OnlineCamera(given, "file")
+        covariance = np.diag([std**2, std**2, 1.0, 1.0, 0.01, 0.01, 1e-6, 1e-6])
+        return camera, camera.check_given(camera_with(fx, fy), covariance, final=final)
+
+    camera, decision = check(106.0, 105.0, 0.8)  # 5.5 % off, the check's focal known to 0.8 %
+    expected = (6.0**2 + 5.0**2) / (0.8**2 + given_variance)
+    assert camera.given_check_detail["statistic"] == pytest.approx(expected, rel=1e-12)
+    assert expected > GIVEN_CHECK_SIGNIFICANCE and decision == "rejected" and camera.given_check == "rejected"
+    assert not camera.given and camera.status()["given_check"] == "rejected"
+    np.testing.assert_array_equal(camera.initial_information, calibration_information(given, GUESS_STD))
+    np.testing.assert_array_equal(camera.prior()[1], camera.initial_information)  # nothing carried of the file's trust
+
+    camera, decision = check(106.0, 105.0, 3.0)  # the same difference, but the check's focal only to 3 %
+    assert (36.0 + 25.0) / (9.0 + given_variance) < GIVEN_CHECK_SIGNIFICANCE
+    assert decision == "pending" and camera.given
+    assert check(106.0, 105.0, 3.0, final=True)[1] == "confirmed"  # the last check confirms what it does not reject
+    camera, decision = check(103.0, 103.0, 0.1)  # a significant 3 %, below GIVEN_CHECK_MIN_ERROR: kept as given
+    assert camera.given_check_detail["statistic"] > GIVEN_CHECK_SIGNIFICANCE and decision == "confirmed"
+    assert check(101.0, 99.5, 0.9)[1] == "confirmed"
+    assert OnlineCamera(given, "model").given_check == ""  # nothing given, nothing to check

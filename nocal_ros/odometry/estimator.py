@@ -449,8 +449,9 @@ class OdometryEstimator:
         with self._lock:
             camera = self._camera
             if camera is None:
-                return {"state": "prior", "source": "file" if self._given_calibration is not None else "model",
-                        "focal_std_px": None, "keyframes": 0, "updates": 0, "fit_residual_px": None}
+                given = self._given_calibration is not None
+                return {"state": "prior", "source": "file" if given else "model", "focal_std_px": None,
+                        "keyframes": 0, "updates": 0, "fit_residual_px": None, "given_check": "pending" if given else ""}
             status = camera.status()
             status["keyframes"] = self.counters.keyframes
             return status
