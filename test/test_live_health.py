@@ -65,6 +65,16 @@ def test_rejected_frames_warn_until_the_next_report_only():
     assert level == WARN and message == "waiting for TF"
 
 
+def test_a_rejected_given_calibration_warns_for_as_long_as_the_node_runs():
+    health = OdometryHealth()
+    now = feed(health, 3, delay_s=0.01) + S // 10
+    for check in ("", "pending", "confirmed"):
+        assert health.report(now, frames_received=3, given_check=check)[:2] == (OK, "ok")
+    for _ in range(2):  # not once: the file it came from stays stale
+        level, message, _ = health.report(now, frames_received=3, given_check="rejected")
+        assert level == WARN and message.startswith("the given calibration disagrees with the stream")
+
+
 def test_reset_forgets_clock_times_from_before_a_jump():
     health = OdometryHealth()
     feed(health, 5, delay_s=0.05)

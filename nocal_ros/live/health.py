@@ -71,8 +71,12 @@ class OdometryHealth:
             self._scale_source = str(scale_source)
 
     def report(self, now_ns: int, *, frames_received: int, frames_rejected: int = 0, frames_waiting_for_tf: int = 0,
-               last_error: str = "") -> tuple[int, str, dict[str, Any]]:
-        """``(level, message, values)`` at clock time ``now_ns``; values are plain numbers and strings."""
+               last_error: str = "", given_check: str = "") -> tuple[int, str, dict[str, Any]]:
+        """``(level, message, values)`` at clock time ``now_ns``; values are plain numbers and strings.
+
+        ``given_check``: the given calibration's check against the stream (``OnlineCamera.given_check``);
+        "rejected" warns for as long as the node runs, since the calibration file it came from is stale.
+        """
         with self._lock:
             published = list(self._published_at)
             delays = np.asarray(self._delays_ns, dtype=np.float64) * 1e-9
@@ -105,6 +109,9 @@ class OdometryHealth:
             new_troubles, self._troubles_reported = troubles > self._troubles_reported, troubles
         if new_troubles:
             problems.append(last_error or "waiting for TF")
+        if given_check == "rejected":
+            problems.append("the given calibration disagrees with the stream: calibrating online "
+                            "(~/save_calibration stores the online one)")
         if problems:
             return WARN, "; ".join(problems), values
         return OK, "ok", values

@@ -388,10 +388,11 @@ class OdometryNode(Node):
 
     def diagnostics(self) -> tuple[int, str, dict[str, Any]]:
         """``(level, message, values)`` now (on the node's clock)."""
+        calibration = self.estimator.calibration_status()
         level, message, health = self.health.report(
             self._now_ns(), frames_received=self.mailbox.received, frames_rejected=self._rejected,
-            frames_waiting_for_tf=self._waiting_for_tf, last_error=self._last_error)
-        calibration = self.estimator.calibration_status()
+            frames_waiting_for_tf=self._waiting_for_tf, last_error=self._last_error,
+            given_check=calibration.get("given_check", ""))
         values = {
             "model_id": self.estimator.model_id,
             "device": str(self.estimator.model.device),
