@@ -1,4 +1,4 @@
-"""scripts/compare: COLMAP on a rendered bag scored like nocal odometry, and the table of reports.
+"""scripts/compare: COLMAP on a rendered bag scored like nocal odometry, the table of reports, and the other helpers.
 
 The COLMAP test needs the optional pycolmap (``pip install -r requirements-compare.txt``) and skips
 without it; the others run everywhere.
@@ -15,7 +15,7 @@ import pytest
 from real_recordings import REAL, needs_real
 
 from nocal_ros import evaluation
-from nocal_ros.data.bags import write_sequence
+from nocal_ros.data.bags import read_camera_info, write_sequence
 from nocal_ros.data.sequence import FrameSequence
 from nocal_ros.geometry import make_transform
 from nocal_ros.lens import CameraCalibration
@@ -185,3 +185,18 @@ def test_vamr_board_motion_sees_the_hand_move_the_board_and_not_the_camera_alone
     assert ratios["420->430"] > 4.0  # measured 8.6
     with pytest.raises(SystemExit):
         script.main([str(REAL)])  # no images there: refused
+
+
+def test_scaled_calibration_writes_the_bags_true_camera_with_its_focal_lengths_scaled(tmp_path, capsys):
+    bag = write_sequence(moving_sequence(), tmp_path / "bag")
+    truth = read_camera_info(bag, "/ground_truth/camera_info")
+    scaled_calibration = load_script("scaled_calibration")
+    assert scaled_calibration.main([str(bag), "--focal-scale", "1.1", "--out", str(tmp_path / "wrong.yaml")]) == 0
+    wrong = CameraCalibration.load(tmp_path / "wrong.yaml")  # as nocal odometry --calibration reads it
+    assert (wrong.fx, wrong.fy) == pytest.approx((1.1 * truth.fx, 1.1 * truth.fy), rel=1e-12)
+    assert (wrong.cx, wrong.cy, wrong.width, wrong.height) == (truth.cx, truth.cy, truth.width, truth.height)
+    np.testing.assert_array_equal(wrong.D, truth.D)
+    assert scaled_calibration.main([str(bag), "--focal-scale", "0", "--out", str(tmp_path / "x.yaml")]) == 2
+    assert scaled_calibration.main([str(bag), "--focal-scale", "1.1", "--out", str(tmp_path / "x.yaml"),
+                                    "--camera-info-topic", "/nothing"]) == 1
+    assert "no camera info topic '/nothing'" in capsys.readouterr().err and not (tmp_path / "x.yaml").exists()
