@@ -136,7 +136,7 @@ def test_a_given_calibrations_check_rejects_it_by_its_wald_statistic_and_then_ho
     """The check's statistic is ``d^T (C_check + C_given)^-1 d`` over (fx, fy), computed here by hand:
     a calibration that the stream contradicts beyond it (and by 4 % or more) becomes a guess, one it
     does not is confirmed once the check's focal length is known to 1 %, and stays pending before."""
-    from nocal_ros.odometry.calibration import (GIVEN_CALIBRATION_STD, GIVEN_CHECK_SIGNIFICANCE, GUESS_STD,
+    from nocal_ros.odometry.calibration import (GIVEN_CALIBRATION_STD, START_CHECK_SIGNIFICANCE, GUESS_STD,
                                                 calibration_information)
 
     given = camera_with(100.0, 100.0)
@@ -145,21 +145,55 @@ def test_a_given_calibrations_check_rejects_it_by_its_wald_statistic_and_then_ho
     def check(fx: float, fy: float, std: float, final: bool = False) -> tuple[OnlineCamera, str]:
         camera = OnlineCamera(given, "file")
         covariance = np.diag([std**2, std**2, 1.0, 1.0, 0.01, 0.01, 1e-6, 1e-6])
-        return camera, camera.check_given(camera_with(fx, fy), covariance, final=final)
+        return camera, camera.check_start(camera_with(fx, fy), covariance, final=final)
 
     camera, decision = check(106.0, 105.0, 0.8)  # 5.5 % off, the check's focal known to 0.8 %
     expected = (6.0**2 + 5.0**2) / (0.8**2 + given_variance)
-    assert camera.given_check_detail["statistic"] == pytest.approx(expected, rel=1e-12)
-    assert expected > GIVEN_CHECK_SIGNIFICANCE and decision == "rejected" and camera.given_check == "rejected"
+    assert camera.check_detail["statistic"] == pytest.approx(expected, rel=1e-12)
+    assert expected > START_CHECK_SIGNIFICANCE and decision == "rejected" and camera.given_check == "rejected"
     assert not camera.given and camera.status()["given_check"] == "rejected"
     np.testing.assert_array_equal(camera.initial_information, calibration_information(given, GUESS_STD))
     np.testing.assert_array_equal(camera.prior()[1], camera.initial_information)  # nothing carried of the file's trust
 
     camera, decision = check(106.0, 105.0, 3.0)  # the same difference, but the check's focal only to 3 %
-    assert (36.0 + 25.0) / (9.0 + given_variance) < GIVEN_CHECK_SIGNIFICANCE
+    assert (36.0 + 25.0) / (9.0 + given_variance) < START_CHECK_SIGNIFICANCE
     assert decision == "pending" and camera.given
     assert check(106.0, 105.0, 3.0, final=True)[1] == "confirmed"  # the last check confirms what it does not reject
     camera, decision = check(103.0, 103.0, 0.1)  # a significant 3 %, below GIVEN_CHECK_MIN_ERROR: kept as given
-    assert camera.given_check_detail["statistic"] > GIVEN_CHECK_SIGNIFICANCE and decision == "confirmed"
+    assert camera.check_detail["statistic"] > START_CHECK_SIGNIFICANCE and decision == "confirmed"
     assert check(101.0, 99.5, 0.9)[1] == "confirmed"
     assert OnlineCamera(given, "model").given_check == ""  # nothing given, nothing to check
+
+
+def test_a_camera_carried_into_a_new_map_is_checked_against_its_statistic_and_dropped_to_a_guess():
+    """At a new map a calibrated camera (not a given one) carries what the earlier maps told it; the new
+    map checks it: the statistic is ``d^T (C_check + C_carried)^-1 d`` with ``C_carried`` the inverse of
+    the carried information, computed here by hand."""
+    from nocal_ros.odometry.calibration import START_CHECK_SIGNIFICANCE, GUESS_STD, calibration_information
+
+    def carried_camera(source: str) -> tuple[OnlineCamera, tuple[np.ndarray, np.ndarray]]:
+        camera = OnlineCamera(camera_with(160.0, 160.0), source)
+        window = np.diag(1.0 / np.square([0.5, 0.5, 1.0, 1.0, 0.01, 0.01, 1e-3, 1e-3]))  # the focal to 0.5 px
+        camera.update(camera_with(100.0, 100.0), np.eye(8), window, kept_share=0.0)
+        assert camera.carried_check == "" and camera.start_check() == ("given" if source == "file" else "")
+        return camera, camera.begin_map()
+
+    camera, start = carried_camera("model")
+    assert camera.carried_check == "pending" and camera.start_check() == "carried"
+    carried_variance = np.linalg.inv(start[1])[0, 0]
+    covariance = np.diag([1.0, 1.0, 1.0, 1.0, 0.01, 0.01, 1e-6, 1e-6])
+    assert camera.check_start(camera_with(85.0, 86.0), covariance) == "rejected"  # a swapped lens
+    d = camera_parameters(camera_with(85.0, 86.0))[:2] - start[0][:2]
+    expected = d @ np.linalg.solve(covariance[:2, :2] + np.linalg.inv(start[1])[:2, :2], d)
+    assert camera.check_detail["statistic"] == pytest.approx(expected, rel=1e-9) and expected > START_CHECK_SIGNIFICANCE
+    assert carried_variance < 1.0 and camera.status()["carried_check"] == "rejected"
+    guess = calibration_information(camera.initial_calibration, GUESS_STD)
+    np.testing.assert_allclose(camera.rejected_start[0], start[0], rtol=1e-12)  # about the carried camera ...
+    np.testing.assert_array_equal(camera.prior()[1], guess)  # ... as a guess: the old maps' confidence is gone
+    assert camera.start_check() == ""
+
+    camera, start = carried_camera("model")
+    assert camera.check_start(camera_with(101.0, 100.5), covariance) == "confirmed"  # 1 % of the focal known
+    np.testing.assert_array_equal(camera.prior()[1], start[1])  # kept as carried
+    camera, _ = carried_camera("file")  # a given calibration's own check comes first; nothing carried to check
+    assert camera.carried_check == "" and camera.start_check() == "given"

@@ -30,7 +30,7 @@ def sequence():
 
 @pytest.fixture(scope="module")
 def other_room():
-    return render_sequence(CAMERA, 40, seed=8, split="test")
+    return render_sequence(CAMERA, 60, seed=8, split="test")
 
 
 def run(estimator: OdometryEstimator, images, stamps) -> list:
@@ -62,7 +62,7 @@ def test_vo_follows_a_rendered_trajectory_through_a_known_camera(sequence):
     status = estimator.calibration_status()
     print("the given calibration's check:", status)
     assert status["given_check"] in ("pending", "confirmed") and status["source"] == "online"
-    assert status["given_check_statistic"] is not None  # it was checked, and the truth was not rejected
+    assert status["check_statistic"] is not None  # it was checked, and the truth was not rejected
 
 
 def test_a_given_calibration_the_stream_contradicts_is_dropped_and_the_camera_calibrated_online(sequence):
@@ -82,7 +82,7 @@ def test_a_given_calibration_the_stream_contradicts_is_dropped_and_the_camera_ca
     status = estimator.calibration_status()
     errors = np.abs(np.array(focal) - CAMERA.fx) / CAMERA.fx
     print("the stale calibration's check:", status, "; focal error % at the middle and the end:", 100 * errors[[40, -1]])
-    assert status["given_check"] == "rejected" and status["given_check_statistic"] > 13.8
+    assert status["given_check"] == "rejected" and status["check_statistic"] > 13.8
     assert errors[-1] < 0.03
 
 
@@ -163,8 +163,36 @@ def test_the_online_calibration_is_kept_through_a_loss_and_a_new_map(sequence, o
         focal.append(estimator.camera_info()[0].fx)
     assert estimator.counters.maps == 2 and estimator.counters.keyframes >= 20
     moved = np.abs(np.array(focal) - at_cut) / at_cut
-    print(f"focal at the cut {at_cut:.2f} px; after it moved at most {100 * moved.max():.2f} %")
+    print(f"focal at the cut {at_cut:.2f} px; after it moved at most {100 * moved.max():.2f} %;",
+          estimator.calibration_status())
     assert moved.max() < 0.006
+    status = estimator.calibration_status()  # the same camera: checked against the new map, and kept
+    assert status["carried_check"] in ("pending", "confirmed") and status["check_statistic"] is not None
+
+
+def test_a_camera_swapped_at_a_cut_is_not_carried_into_the_new_map(sequence):
+    """After a cut to another room seen through another camera of the same size (15 % shorter focal
+    length), the camera carried into the new map is checked against it, rejected, and calibrated online
+    again. Carried with its confidence, such a camera stayed 11-46 % off through the next map (measured
+    on dev bags). Measured here: rejected at the new map's 10th keyframe (statistic 61.7), the focal length
+    0.4 % off the first camera at the cut and 0.3 % off the second at the end."""
+    K = CAMERA.K.copy()
+    K[:2, :2] *= 0.85
+    swapped = CameraCalibration(WIDTH, HEIGHT, K, CAMERA.D, "plumb_bob", "swapped")
+    other = render_sequence(swapped, 60, seed=8, split="test")
+    estimator = OdometryEstimator(synchronous_mapping=True)
+    run(estimator, sequence.images, sequence.stamps_ns)
+    at_cut = estimator.camera_info()[0].fx
+    black = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
+    for k, image in enumerate([black] * 3 + list(other.images)):
+        estimator.process(int(sequence.stamps_ns[-1]) + (k + 1) * 100_000_000, image)
+    status = estimator.calibration_status()
+    end = estimator.camera_info()[0].fx
+    print(f"focal at the cut {at_cut:.2f} px ({100 * (at_cut / CAMERA.fx - 1):+.2f} % of the first camera); at the end "
+          f"{end:.2f} px ({100 * (end / swapped.fx - 1):+.2f} % of the second);", status)
+    assert estimator.counters.maps == 2 and abs(at_cut - CAMERA.fx) / CAMERA.fx < 0.02
+    assert status["carried_check"] == "rejected" and status["check_statistic"] > 13.8
+    assert abs(end - swapped.fx) / swapped.fx < 0.03
 
 
 def test_arm_poses_make_the_scale_metric(sequence):

@@ -451,7 +451,7 @@ class OdometryEstimator:
             if camera is None:
                 given = self._given_calibration is not None
                 return {"state": "prior", "source": "file" if given else "model", "focal_std_px": None,
-                        "keyframes": 0, "updates": 0, "fit_residual_px": None, "given_check": "pending" if given else ""}
+                        "keyframes": 0, "updates": 0, "fit_residual_px": None, "given_check": "pending" if given else "", "carried_check": ""}
             status = camera.status()
             status["keyframes"] = self.counters.keyframes
             return status
