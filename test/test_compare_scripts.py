@@ -200,3 +200,18 @@ def test_scaled_calibration_writes_the_bags_true_camera_with_its_focal_lengths_s
     assert scaled_calibration.main([str(bag), "--focal-scale", "1.1", "--out", str(tmp_path / "x.yaml"),
                                     "--camera-info-topic", "/nothing"]) == 1
     assert "no camera info topic '/nothing'" in capsys.readouterr().err and not (tmp_path / "x.yaml").exists()
+
+
+def test_camera_swap_runs_one_estimator_through_both_bags_and_refuses_bags_of_two_sizes(tmp_path, capsys):
+    camera_swap = load_script("camera_swap")
+    a = write_sequence(moving_sequence(), tmp_path / "a")
+    b = write_sequence(moving_sequence(), tmp_path / "b")
+    assert camera_swap.main([str(a), str(b), "--black", "2"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("a fx 7.0 -> b fx 7.0 (+0.0 %): focal at the cut") and "maps " in line  # 12 + 2 + 12 frames
+    wider = moving_sequence()
+    wider = FrameSequence(np.zeros((12, 6, 10, 3), np.uint8), wider.stamps_ns, wider.arm_poses, wider.ground_truth,
+                          CameraCalibration.pinhole(10, 6, 7.0))
+    c = write_sequence(wider, tmp_path / "c")
+    assert camera_swap.main([str(a), str(c)]) == 2
+    assert "differ in size (8x6 and 10x6)" in capsys.readouterr().err
