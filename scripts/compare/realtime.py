@@ -1,13 +1,15 @@
 """Replay a bag's images in real time through the estimator as the odometry node runs it, and score it.
 
-    python scripts/compare/realtime.py BAG [--rate HZ]
+    python scripts/compare/realtime.py BAG [--rate HZ] [--calibration YAML]
 
 The node's way: a one-slot mailbox (a frame that arrives while another is being processed replaces the
 waiting one and is counted as dropped), a worker thread that processes the newest frame, and local
 mapping in its own thread and process (``nocal odometry`` maps synchronously instead, so that a
 replay repeats exactly). Prints the frames processed and dropped, the worker thread's CPU time per
 frame, the online camera's errors, and the RPE over consecutive processed frames and APE Sim(3)
-against the bag's ground truth. Runs differ from run to run: they depend on the machine's timing.
+against the bag's ground truth, and the online camera's state (with the check of a given calibration,
+``--calibration``, as the node's ``camera_info_url`` gives one). Runs differ from run to run: they depend
+on the machine's timing.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bag")
     parser.add_argument("--rate", type=float, default=0.0, help="frames per second (default: the bag's stamps)")
     parser.add_argument("--arm-topic", default="", help="arm poses (PoseStamped) for metric scale; '' to ignore")
+    parser.add_argument("--calibration", help="camera_calibration YAML to start the online camera from")
     args = parser.parse_args(argv)
 
     import torch
@@ -36,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     stamps = np.asarray(sequence.stamps_ns, dtype=np.int64)
     rate = args.rate or 1e9 / float(np.median(np.diff(stamps)))
     arm_stamps, arm_poses = read_pose_messages(args.bag, args.arm_topic) if args.arm_topic else ([], [])
-    estimator = OdometryEstimator()
+    from nocal_ros.lens import CameraCalibration
+
+    estimator = OdometryEstimator(calibration=CameraCalibration.load(args.calibration) if args.calibration else None)
     poses: dict[int, np.ndarray] = {}
     next_arm = 0
 
@@ -64,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{rpe['translation_m']['rmse']:.4f} m / {rpe['rotation_deg']['rmse']:.3f} deg; APE Sim(3) {ape['rmse']:.4f} m "
           f"(scale {ape['scale']:.3f}); {len(estimator.timings()['bundle_adjustment'])} bundle adjustments for "
           f"{estimator.counters.keyframes} keyframes")
+    status = estimator.calibration_status()
+    checks = [f"{kind} calibration {status[kind + '_check']}" for kind in ("given", "carried") if status.get(kind + "_check")]
+    print(f"camera: {status['state']} ({status['source']})" + "".join(f"; {check}" for check in checks))
     estimator.close()
     return 0
 
