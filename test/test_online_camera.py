@@ -197,3 +197,10 @@ def test_a_camera_carried_into_a_new_map_is_checked_against_its_statistic_and_dr
     np.testing.assert_array_equal(camera.prior()[1], start[1])  # kept as carried
     camera, _ = carried_camera("file")  # a given calibration's own check comes first; nothing carried to check
     assert camera.carried_check == "" and camera.start_check() == "given"
+
+    given = OnlineCamera(camera_with(100.0, 100.0), "file")  # confirmed in one map, checked again in the next
+    assert given.check_start(camera_with(100.5, 100.2), covariance) == "confirmed" and given.start_check() == ""
+    given.update(camera_with(100.1, 100.1), np.eye(8), np.eye(8), kept_share=0.0)
+    given.begin_map()
+    assert given.given_check == "pending" and given.start_check() == "given" and given.carried_check == ""
+    assert given.check_start(camera_with(85.0, 85.0), covariance) == "rejected" and not given.given
