@@ -1,11 +1,12 @@
 """A camera swapped at a cut: bag A's frames, a few black frames, then bag B's, through one estimator.
 
-    python scripts/compare/camera_swap.py BAG_A BAG_B [--black 3]
+    python scripts/compare/camera_swap.py BAG_A BAG_B [--black 3] [--calibration A.yaml]
 
 Measures what the odometry does with the camera it carries into the map after the cut when the camera
 itself changed there (a lens swapped or refocused while the view was covered): the focal length at the
 cut against A's true one, at the end against B's, and the new map's check of the carried camera
-(``OnlineCamera.check_start``). Both bags need ``/ground_truth/camera_info`` (``nocal synth`` and
+(``OnlineCamera.check_start``); with ``--calibration`` (A's, say, as ``camera_info_url`` gives it) the
+check of that given calibration instead. Both bags need ``/ground_truth/camera_info`` (``nocal synth`` and
 ``nocal import`` write it) and frames of one size. Synchronous mapping, so a run repeats.
 """
 
@@ -22,6 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bag_b", type=Path)
     parser.add_argument("--black", type=int, default=3, help="black frames at the cut")
     parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info")
+    parser.add_argument("--calibration", type=Path, help="camera_calibration YAML to start the online camera from")
     args = parser.parse_args(argv)
 
     import numpy as np
@@ -30,8 +32,11 @@ def main(argv: list[str] | None = None) -> int:
     from nocal_ros.errors import NocalError
     from nocal_ros.odometry import OdometryEstimator
 
+    from nocal_ros.lens import CameraCalibration
+
     try:
         truth_a, truth_b = (read_camera_info(bag, args.camera_info_topic) for bag in (args.bag_a, args.bag_b))
+        given = CameraCalibration.load(args.calibration) if args.calibration else None
     except NocalError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
@@ -39,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the bags' cameras differ in size ({truth_a.width}x{truth_a.height} and "
               f"{truth_b.width}x{truth_b.height}): a swap here keeps the size", file=sys.stderr)
         return 2
-    estimator = OdometryEstimator(synchronous_mapping=True)
+    estimator = OdometryEstimator(calibration=given, synchronous_mapping=True)
     period_ns, stamp_ns = 100_000_000, 0
 
     def process(image: np.ndarray) -> float:
@@ -67,8 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.bag_a.name} fx {truth_a.fx:.1f} -> {args.bag_b.name} fx {truth_b.fx:.1f} "
           f"({100 * (truth_b.fx / truth_a.fx - 1):+.1f} %): focal at the cut {at_cut:.1f} px "
           f"({100 * (at_cut / truth_a.fx - 1):+.2f} % of A's), at the end {at_end:.1f} px "
-          f"({100 * (at_end / truth_b.fx - 1):+.2f} % of B's); maps {estimator.counters.maps}; carried camera "
-          f"{status.get('carried_check') or 'not checked'}"
+          f"({100 * (at_end / truth_b.fx - 1):+.2f} % of B's); maps {estimator.counters.maps}; "
+          + (f"given calibration {status.get('given_check')}" if given is not None else
+             f"carried camera {status.get('carried_check') or 'not checked'}")
           + ("" if statistic is None else f" (statistic {statistic:.1f})"))
     return 0
 
