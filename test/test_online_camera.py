@@ -204,3 +204,9 @@ def test_a_camera_carried_into_a_new_map_is_checked_against_its_statistic_and_dr
     given.begin_map()
     assert given.given_check == "pending" and given.start_check() == "given" and given.carried_check == ""
     assert given.check_start(camera_with(85.0, 85.0), covariance) == "rejected" and not given.given
+    undecided = OnlineCamera(camera_with(100.0, 100.0), "file")  # undecided at a cut: the new map starts over
+    assert undecided.check_start(camera_with(104.0, 104.0), np.diag([9.0, 9.0, 1, 1, 0.01, 0.01, 1e-6, 1e-6])) == "pending"
+    undecided.update(camera_with(100.1, 100.1), np.eye(8), np.eye(8), kept_share=0.0)
+    assert undecided.check_detail
+    undecided.begin_map()
+    assert undecided.given_check == "pending" and undecided.check_detail == {}  # its first check: focal hypotheses

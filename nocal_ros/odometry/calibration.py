@@ -270,9 +270,11 @@ class OnlineCamera:
             # Carried with its confidence, a camera swapped at a cut (or one confidently wrong) stayed
             # 11-46 % off through the next map (6 dev swaps of 15-70 %, measured): the map checks it. A
             # given calibration confirmed by an earlier map is checked again for the same reason.
+            # Each map's first check chooses among focal hypotheses (check_detail empty): the map was
+            # tracked through what it checks.
             if not self.given:
                 self.carried_check, self._carried_start, self.check_detail = "pending", start, {}
-            elif self.given_check == "confirmed":
+            elif self.given_check in ("confirmed", "pending"):
                 self.given_check, self.check_detail = "pending", {}
             return start
 

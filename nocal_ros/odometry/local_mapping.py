@@ -50,7 +50,7 @@ A camera **carried into a new map** after a loss (what the earlier maps told it,
 is checked against the new map the same way: a camera swapped at a cut, or one that converged
 confidently wrong, would otherwise be handed on (measured: swapped at a cut for another of the same
 size, the focal length stayed 11-46 % off through the second bag on 6 dev swaps of 15-70 %). A given
-calibration confirmed by an earlier map is checked again by each new one.
+calibration, confirmed or not yet decided, is checked again by each new map.
 """
 
 from __future__ import annotations
