@@ -302,10 +302,11 @@ class LocalMapping:
             # VAMR at 30 Hz: the map reached 7 keyframes in one batch, and the camera was first solved at 10).
             counts = [keyframe.index + 1 for mapped, keyframe in batch if mapped is local_map]
             scheduled = any(self.initialises_at(count) for count in counts)
-            if (scheduled and START_CHECK_KEYFRAMES <= max(counts) and self.camera.start_check()
-                    and self.check_start(local_map, counts)):
-                return
-            self.bundle_adjust(local_map, initialise=scheduled and not self.camera.given)
+            # A rejecting check's solve is the map's camera initialisation: no window solve after it.
+            rejected = (scheduled and START_CHECK_KEYFRAMES <= max(counts) and self.camera.start_check() != ""
+                        and self.check_start(local_map, counts))
+            if not rejected:
+                self.bundle_adjust(local_map, initialise=scheduled and not self.camera.given)
         self.milliseconds.append((time.perf_counter() - start) * 1e3)
 
     def pose_again(self, local_map: LocalMap, keyframe: Keyframe) -> bool:

@@ -30,9 +30,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from nocal_ros.data.bags import iter_images, read_camera_info
     from nocal_ros.errors import NocalError
-    from nocal_ros.odometry import OdometryEstimator
-
     from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry import OdometryEstimator
 
     try:
         truth_a, truth_b = (read_camera_info(bag, args.camera_info_topic) for bag in (args.bag_a, args.bag_b))

@@ -32,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     from nocal_ros import evaluation
     from nocal_ros.data.bags import read_pose_messages, read_sequence
     from nocal_ros.geometry import invert_transform
+    from nocal_ros.lens import CameraCalibration
     from nocal_ros.odometry import OdometryEstimator, replay_at_rate
 
     torch.set_num_threads(1)
@@ -39,8 +40,6 @@ def main(argv: list[str] | None = None) -> int:
     stamps = np.asarray(sequence.stamps_ns, dtype=np.int64)
     rate = args.rate or 1e9 / float(np.median(np.diff(stamps)))
     arm_stamps, arm_poses = read_pose_messages(args.bag, args.arm_topic) if args.arm_topic else ([], [])
-    from nocal_ros.lens import CameraCalibration
-
     estimator = OdometryEstimator(calibration=CameraCalibration.load(args.calibration) if args.calibration else None)
     poses: dict[int, np.ndarray] = {}
     next_arm = 0
