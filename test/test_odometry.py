@@ -343,6 +343,9 @@ def test_set_calibration_replaces_the_published_camera_and_keeps_the_pose():
     estimator = OdometryEstimator(model, method="pose_head")
     status = estimator.calibration_status()
     assert (status["state"], status["source"], status["focal_std_px"], status["keyframes"]) == ("prior", "model", None, 0)
+    # Before the online camera exists the status has its keys (diagnostics list the same fields throughout).
+    from nocal_ros.odometry.calibration import OnlineCamera
+    assert status.keys() == OnlineCamera(CameraCalibration(64, 48, np.eye(3), np.zeros(5)), "model").status().keys()
     learnt, _ = estimator.camera_info(64, 48)
     assert learnt.fx == pytest.approx(64.0)  # the untrained camera: f = width
     for k in range(3):

@@ -187,6 +187,31 @@ def _with_gains(mean: np.ndarray, information: np.ndarray, gains) -> tuple[np.nd
     return information, weighted
 
 
+def calibration_status(state: str, source: str, *, focal_std_px: float | None = None, keyframes: int = 0,
+                       updates: int = 0, fit_residual_px: float | None = None, given_check: str = "",
+                       carried_check: str = "", check_detail: dict | None = None) -> dict:
+    """The calibration's status as the report, ``/diagnostics`` and the CLI show it: the one place its keys
+    are written, whether the online camera exists yet or not.
+
+    ``state``: ``"prior"``, ``"converging"`` or ``"converged"``; ``source``: where the camera came from
+    (``"model"``, ``"file"``, ``"online"``, ...); ``given_check`` / ``carried_check``: ``""``,
+    ``"pending"``, ``"confirmed"`` or ``"rejected"``; ``check_detail``: the latest check's solve (its
+    ``measured_fx``, ``measured_focal_std`` and Wald ``statistic``), absent keys None.
+    """
+    detail = check_detail or {}
+    return {
+        "state": state,
+        "source": source,
+        "focal_std_px": focal_std_px,
+        "keyframes": int(keyframes),
+        "updates": int(updates),
+        "fit_residual_px": fit_residual_px,
+        "given_check": given_check,
+        "carried_check": carried_check,
+        **{f"check_{key}": detail.get(key) for key in ("measured_fx", "measured_focal_std", "statistic")},
+    }
+
+
 class OnlineCamera:
     """The current calibration, its covariance and the information carried between windows (thread-safe)."""
 
@@ -387,18 +412,10 @@ class OnlineCamera:
         return "converged" if std < CONVERGED_FOCAL_STD * self.calibration.fx else "converging"
 
     def status(self) -> dict:
-        return {
-            "state": self.state(),
-            "source": self.source,
-            "focal_std_px": self.focal_std_px(),
-            "keyframes": int(self.keyframes),
-            "updates": int(self.updates),
-            "fit_residual_px": self.residual_px,
-            "given_check": self.given_check,
-            "carried_check": self.carried_check,
-            # The latest check's solve: its focal length and relative standard deviation, and its Wald statistic.
-            **{f"check_{key}": self.check_detail.get(key) for key in ("measured_fx", "measured_focal_std", "statistic")},
-        }
+        return calibration_status(self.state(), self.source, focal_std_px=self.focal_std_px(),
+                                  keyframes=self.keyframes, updates=self.updates, fit_residual_px=self.residual_px,
+                                  given_check=self.given_check, carried_check=self.carried_check,
+                                  check_detail=self.check_detail)
 
     def update(self, calibration: CameraCalibration, covariance: np.ndarray | None,
                window_information: np.ndarray | None = None, kept_share: float = 0.0,

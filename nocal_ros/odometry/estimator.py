@@ -86,6 +86,7 @@ from nocal_ros.odometry.calibration import (
     OnlineCamera,
     as_vo_calibration,
     calibration_from_learnt_camera,
+    calibration_status,
     prior_calibration,
 )
 from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, propagate_covariance
@@ -450,8 +451,8 @@ class OdometryEstimator:
             camera = self._camera
             if camera is None:
                 given = self._given_calibration is not None
-                return {"state": "prior", "source": "file" if given else "model", "focal_std_px": None,
-                        "keyframes": 0, "updates": 0, "fit_residual_px": None, "given_check": "pending" if given else "", "carried_check": ""}
+                return calibration_status("prior", "file" if given else "model",
+                                          given_check="pending" if given else "")
             status = camera.status()
             status["keyframes"] = self.counters.keyframes
             return status
