@@ -409,3 +409,35 @@ def test_odometry_does_not_jump_where_a_map_starts_through_a_guessed_camera():
              for k in range(1, len(results))]
     step_errors = [rotation_angle_deg(true.T @ estimated) for true, estimated in steps]
     assert max(step_errors) < 1.5
+
+
+def test_an_initialisation_whose_reference_tracks_thin_out_starts_again_from_the_current_frame(sequence):
+    """While no map exists, a reference frame keeps its tracks only while enough of them survive to make a
+    map (``init_min_reference_tracks``); fewer left, and the current frame, topped up, becomes the
+    reference, as ORB-SLAM's initialiser replaces its reference. Here the second frame shows the scene in
+    a band holding about 120 of the reference's tracks and a flat grey elsewhere."""
+    from nocal_ros.odometry.calibration import OnlineCamera
+    from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry
+
+    settings = TrackingSettings()
+    whole = VisualOdometry(OnlineCamera(CAMERA, "file"), settings, synchronous=True)
+    whole.process(0, int(sequence.stamps_ns[0]), sequence.images[0])
+    assert whole.process(1, int(sequence.stamps_ns[1]), sequence.images[1]).reference_frame == 0
+    whole.close()
+
+    vo = VisualOdometry(OnlineCamera(CAMERA, "file"), settings, synchronous=True)
+    vo.process(0, int(sequence.stamps_ns[0]), sequence.images[0])
+    reference = vo.tracker.current()
+    assert len(reference.ids) > 2 * settings.init_min_reference_tracks
+    # A band of columns about the 120 tracks in the middle of the image (about half survive: those near its edges are lost).
+    columns = np.sort(reference.pixels[:, 0])
+    middle = len(columns) // 2
+    x0, x1 = int(np.floor(columns[middle - 60])), int(np.ceil(columns[middle + 60]))
+    banded = np.full_like(sequence.images[1], 128)
+    banded[:, x0:x1 + 1] = sequence.images[1][:, x0:x1 + 1]
+    second = vo.process(1, int(sequence.stamps_ns[1]), banded)
+    survived = np.isin(reference.ids, vo.tracker.ids).sum()
+    assert settings.min_tracks <= survived < settings.init_min_reference_tracks, survived
+    assert second.state == "initialising" and second.reference_frame == 1
+    assert len(vo.tracker) > settings.init_min_reference_tracks  # the new reference was topped up
+    vo.close()

@@ -61,6 +61,10 @@ class TrackingSettings:
         init_min_points: landmarks the first two keyframes need.
         init_parallax_deg, init_parallax_px: the median ray angle they need, at least, and at least this
             many pixels' worth of it (at low resolution a degree is one or two pixels: too few for depth).
+        init_min_reference_tracks: while initialising, a reference with fewer of its tracks left is
+            replaced by the current frame, as ORB-SLAM's initialiser replaces its reference with fewer than
+            100 matches: the essential matrix keeps only a share of them (through a guessed camera half or
+            less), and a reference whose tracks die faster than parallax grows never makes a map.
     """
 
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
@@ -75,6 +79,7 @@ class TrackingSettings:
     init_min_points: int = 40
     init_parallax_deg: float = 1.0
     init_parallax_px: float = 5.0
+    init_min_reference_tracks: int = 80
 
 
 @dataclass
@@ -254,8 +259,8 @@ class VisualOdometry:
         state = "lost" if self.state == "lost" else "initialising"
         reference_frame, reference_stamp, reference = self._reference or (None, None, None)
         found, rows = _lookup(reference, tracked.ids) if reference is not None else (None, None)
-        if reference is None or found.sum() < settings.min_tracks:
-            # No reference yet, or its tracks have died out: start again from this frame.
+        if reference is None or found.sum() < max(settings.min_tracks, settings.init_min_reference_tracks):
+            # No reference yet, or too few of its tracks are left to make a map: start again from this frame.
             self._set_reference(frame, stamp_ns)
             return VOFrame(state, rotation_from_reference=np.eye(3), map_id=self.map_id, reference_frame=frame,
                            tracks=len(self.tracker))
