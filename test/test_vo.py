@@ -390,10 +390,11 @@ def test_a_map_moved_between_two_frames_moves_the_motion_guess_with_it(sequence)
 
 def test_odometry_does_not_jump_where_a_map_starts_through_a_guessed_camera():
     """A wide 160x120 camera (f 90 px, the guess f = width 76 % long; the dev bag r160_205's camera and
-    motion, 2 deg of turn per frame): the map starts at frame 9, where its two-view rotation from the
-    reference and the rotation chained frame to frame differ by 23 deg. The frame keeps the chained
-    rotation and the map turns about it: every published step's rotation stays within 1.5 deg of the
-    truth (measured: 0.79 deg at most; 21.4 deg at the map's start when it took the two-view rotation)."""
+    motion, 2 deg of turn per frame): the map starts at frame 8 (at 9 with a 15 px tracking window),
+    where its two-view rotation from the reference and the rotation chained frame to frame differ by
+    21 deg (23 at frame 9). The frame keeps the chained rotation and the map turns about it: every
+    published step's rotation stays within 1.5 deg of the truth (measured: 0.81 deg at most, 0.79 with
+    the map at frame 9; 21.4 deg at the map's start when it took the two-view rotation)."""
     from nocal_ros.data.synthetic import random_calibration
     from nocal_ros.geometry import rotation_angle_deg
 
@@ -402,7 +403,8 @@ def test_odometry_does_not_jump_where_a_map_starts_through_a_guessed_camera():
     estimator = OdometryEstimator(synchronous_mapping=True)
     results = run(estimator, frames.images, frames.stamps_ns)
     tracking = [r.tracking for r in results]
-    assert tracking[:9] == ["initialising"] * 9 and tracking[9:] == ["ok"] * 7  # the map starts at frame 9
+    start = tracking.index("ok")  # where the map starts
+    assert 5 <= start <= 10 and tracking[:start] == ["initialising"] * start and tracking[start:] == ["ok"] * (16 - start)
     published = np.array([r.T_odom_cam for r in results])
     truth = frames.ground_truth
     steps = [(truth[k - 1, :3, :3].T @ truth[k, :3, :3], published[k - 1, :3, :3].T @ published[k, :3, :3])
