@@ -187,6 +187,7 @@ class OdometryCounters:
     initialising_frames: int = 0
     lost_frames: int = 0
     pose_head_fallbacks: int = 0  # lost frames bridged by the pose head
+    guess_rescues: int = 0  # frames PnP posed through the guessed camera only with a wider threshold
 
 
 # --------------------------------------------------------------------------------------------------
@@ -623,6 +624,8 @@ class OdometryEstimator:
             self.counters.keyframes += 1
         if vo_frame.new_map:
             self.counters.maps += 1
+        if vo_frame.guess_rescued:
+            self.counters.guess_rescues += 1
 
         if not self._has_previous:
             self._has_previous = True

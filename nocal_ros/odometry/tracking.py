@@ -61,6 +61,11 @@ class TrackingSettings:
         init_min_points: landmarks the first two keyframes need.
         init_parallax_deg, init_parallax_px: the median ray angle they need, at least, and at least this
             many pixels' worth of it (at low resolution a degree is one or two pixels: too few for depth).
+        guess_pnp_threshold_factor: a frame posed through the guessed camera (before its first
+            initialisation, and no calibration given) that PnP cannot pose within ``pixel_threshold`` is
+            tried again within this many times it. A guess tens of percent off bends correct tracks by
+            more than the threshold: KITTI's forward drive, through f = width 73 % long, lost its first
+            maps at their second or fifth frame with fewer than 15 PnP inliers (docs/RESULTS.md).
         init_min_reference_tracks: while initialising, a reference with fewer of its tracks left is
             replaced by the current frame, as ORB-SLAM's initialiser replaces its reference with fewer than
             100 matches: the essential matrix keeps only a share of them (through a guessed camera half or
@@ -80,6 +85,7 @@ class TrackingSettings:
     init_parallax_deg: float = 1.0
     init_parallax_px: float = 5.0
     init_min_reference_tracks: int = 80
+    guess_pnp_threshold_factor: float = 3.0
 
 
 @dataclass
@@ -104,6 +110,8 @@ class VOFrame:
         T_prev_cur: ``(4, 4)`` motion from the previous frame posed in the same map, with the previous
             frame posed again in the map and camera as they stand now: local mapping moves keyframes,
             landmarks and the camera between frames, and the motion must not absorb those corrections.
+        guess_rescued: posed only with ``TrackingSettings.guess_pnp_threshold_factor`` (through the
+            guessed camera).
     """
 
     state: str
@@ -119,6 +127,7 @@ class VOFrame:
     inliers: int = 0
     textured: bool = True
     T_prev_cur: np.ndarray | None = None
+    guess_rescued: bool = False
 
 
 class VisualOdometry:
@@ -332,6 +341,12 @@ class VisualOdometry:
         # Every track's ray once: PnP takes those with landmarks, the keyframe decision the rest.
         rays = calibration.undistorted_normalised(tracked.pixels)
         pnp = solve_pnp(positions, rays[mask], threshold, guess=guess, min_inliers=settings.min_pnp_inliers)
+        rescued = False
+        if pnp is None and self.camera.updates == 0 and not self.camera.given:
+            # Only as a rescue: a wider threshold on every frame through the guess broke three dev maps.
+            pnp = solve_pnp(positions, rays[mask], settings.guess_pnp_threshold_factor * threshold, guess=guess,
+                            min_inliers=settings.min_pnp_inliers)
+            rescued = pnp is not None
         if pnp is None:
             return self._lose(frame, stamp_ns, True, len(tracked.ids))
         self._previous = tracked
@@ -369,7 +384,7 @@ class VisualOdometry:
             self._record(frame, self.map, anchor, T_anchor_cur, tracked)
         return VOFrame("ok", T_map_cam=T.copy(), covariance=pnp.covariance, map_id=self.map_id,
                        reference_frame=self.map.keyframes[0].frame, keyframe=keyframe,
-                       tracks=len(tracked.ids), inliers=inliers, T_prev_cur=T_prev_cur)
+                       tracks=len(tracked.ids), inliers=inliers, T_prev_cur=T_prev_cur, guess_rescued=rescued)
 
     def _keep_image(self, frame: int, image: np.ndarray | None) -> None:
         """Keep a keyframe's image while recording, within the budget (the oldest go first)."""
