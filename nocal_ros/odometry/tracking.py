@@ -314,9 +314,9 @@ class VisualOdometry:
         self._keep_image(first.frame, self._reference_image)
         self._keep_image(frame, self.tracker.gray)
         self._record(first.frame, local_map, first, np.eye(4), reference)
-        for between, rotation, tracks in self._initialising[:-1]:  # the last one is this frame
+        for between, R_ref_between, tracks in self._initialising[:-1]:  # the last one is this frame
             T_ref_between = np.eye(4)
-            T_ref_between[:3, :3] = rotation
+            T_ref_between[:3, :3] = R_ref_between
             self._record(between, local_map, first, T_ref_between, tracks)
         self._initialising.clear()
         self._record(frame, local_map, keyframe, np.eye(4), current)
