@@ -459,7 +459,6 @@ def test_recording_for_the_final_trajectory_does_not_change_what_is_published():
     recording shadowed it), a zero step where the truth turned 1.75 deg (heldout_640, frame 2). The
     r160_205 camera of the test above starts its map at frame 8."""
     from nocal_ros.data.synthetic import random_calibration
-
     from nocal_ros.odometry.tracking import TrackingSettings
 
     camera = random_calibration(np.random.default_rng([205, 7]), WIDTH, HEIGHT)

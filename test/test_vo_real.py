@@ -14,15 +14,23 @@ from nocal_ros.data.importers import open_recording
 from nocal_ros.odometry import OdometryEstimator
 
 
+def _replay_from_the_guess(kind: str, folder: str) -> tuple[list[str], dict]:
+    """A whole recording replayed from ``f = width``: each frame's tracking state, and the online
+    camera's errors at the end against the published calibration."""
+    recording = open_recording(kind, REAL / folder)
+    estimator = OdometryEstimator(synchronous_mapping=True)
+    tracking = [estimator.process(int(stamp), image).tracking for stamp, image in recording.frames()]
+    errors = evaluation.calibration_errors(estimator.camera_info()[0], recording.calibration)
+    estimator.close()
+    return tracking, errors
+
+
 @needs_real("vamr_ex1")
 def test_the_online_camera_converges_over_a_whole_real_recording_and_keeps_it():
     """Measured (docs/RESULTS.md, "The camera kept through a new map and over a long stream"): focal
     error 0.97 % and ``dr`` 0.046 at the end, no frame lost; before the camera kept what it had learnt
     over the stream, 13.7 %, 0.143 and 20 lost frames (COLMAP's ``dr`` on the first 300 frames: 0.078)."""
-    recording = open_recording("vamr", REAL / "vamr_ex1")
-    estimator = OdometryEstimator(synchronous_mapping=True)
-    tracking = [estimator.process(int(stamp), image).tracking for stamp, image in recording.frames()]
-    errors = evaluation.calibration_errors(estimator.camera_info()[0], recording.calibration)
+    tracking, errors = _replay_from_the_guess("vamr", "vamr_ex1")
     print(f"focal {errors['focal_error_percent']:.2f} %, dr {errors['dr']:.4f}, lost {tracking.count('lost')}")
     assert len(tracking) == 736
     assert tracking.count("lost") <= 5
@@ -60,11 +68,7 @@ def test_a_drive_turning_from_its_first_frame_finds_its_focal_length_from_a_gues
     missed: the plain solve's 1366 px was kept and the camera published 71 % long at the end. Measured
     with eleven hypotheses a factor 1.12 apart (docs/RESULTS.md, "KITTI's first camera initialisation"):
     4.8 %."""
-    recording = open_recording("kitti", REAL / "kitti_clip")
-    estimator = OdometryEstimator(synchronous_mapping=True)
-    tracking = [estimator.process(int(stamp), image).tracking for stamp, image in recording.frames()]
-    errors = evaluation.calibration_errors(estimator.camera_info()[0], recording.calibration)
-    estimator.close()
+    tracking, errors = _replay_from_the_guess("kitti", "kitti_clip")
     print(f"focal {errors['focal_error_percent']:.2f} %, lost {tracking.count('lost')}")
     assert len(tracking) == 51
     assert tracking.count("lost") == 0
