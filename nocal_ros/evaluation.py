@@ -245,6 +245,44 @@ def relative_pose_error_of_pairs(predicted: np.ndarray, truth: np.ndarray) -> di
     return relative_pose_error(integrate_relative_poses(predicted, start=truth[0]), truth, delta=1)
 
 
+#: Chi-square, 3 degrees of freedom, 99 %: a consistent estimator's normalised rotation errors stay
+#: below it on 99 % of pairs.
+CHI2_3DOF_99 = 11.345
+
+
+def rotation_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
+    """How well the reported rotation covariance of each step describes its error (NEES).
+
+    For consecutive poses ``T_w_c`` ``(N, 4, 4)`` and each step's ``(3, 3)`` rotation covariance in the
+    later camera's frame ``(N - 1, 3, 3)`` (right perturbation, rad^2), the error ``e = log(R_true^T R_est)``
+    of the step's rotation is normalised, ``e^T C^-1 e``: 3 on average for a consistent estimator, more
+    for an overconfident one. Steps whose covariance is not finite and positive definite are skipped.
+
+    Returns ``{"pairs", "mean_nees", "median_nees", "within_99"}`` (the share below :data:`CHI2_3DOF_99`).
+    """
+    from nocal_ros.geometry import so3_log
+
+    estimate = _check_poses(estimate, "estimated poses")
+    truth = _check_poses(truth, "true poses")
+    covariances = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    if len(estimate) != len(truth) or len(covariances) != len(truth) - 1:
+        raise ValueError(f"{len(estimate)} estimated and {len(truth)} true poses need {len(truth) - 1} step covariances, "
+                         f"got {len(covariances)}")
+    nees = []
+    for k, C in enumerate(covariances):
+        if not np.isfinite(C).all() or np.linalg.eigvalsh(0.5 * (C + C.T)).min() <= 0:
+            continue
+        R_est = estimate[k, :3, :3].T @ estimate[k + 1, :3, :3]
+        R_true = truth[k, :3, :3].T @ truth[k + 1, :3, :3]
+        e = so3_log(R_true.T @ R_est)
+        nees.append(float(e @ np.linalg.solve(C, e)))
+    if not nees:
+        return {"pairs": 0}
+    values = np.array(nees)
+    return {"pairs": int(len(values)), "mean_nees": float(values.mean()), "median_nees": float(np.median(values)),
+            "within_99": float(np.mean(values < CHI2_3DOF_99))}
+
+
 def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: bool = False) -> dict[str, Any]:
     """APE after Umeyama alignment of the estimate to the truth (``correct_scale``: similarity, else SE(3)).
 
@@ -357,6 +395,11 @@ def format_report(report: dict[str, Any]) -> str:
                              f"{tracked['pairs']:>8d}  (pairs of tracked frames)")
         if report.get("ape_sim3") and "scale" in report["ape_sim3"]:
             lines.append(f"  Sim(3) alignment scale {report['ape_sim3']['scale']:>10.4f}")
+        consistency = report.get("rotation_consistency")
+        if consistency and consistency.get("pairs"):
+            lines.append(f"  rotation NEES {consistency['mean_nees']:>10.2f} mean, {consistency['median_nees']:.2f} median "
+                         f"(3 when the covariance is consistent); {100 * consistency['within_99']:.1f} % of "
+                         f"{consistency['pairs']} steps within the 99 % bound")
     for key, label in (("tracking", "tracking"), ("scale_source", "scale from")):
         if isinstance(report.get(key), dict):
             lines.append(f"{label}: " + ", ".join(f"{k} {v}" for k, v in report[key].items()))

@@ -282,3 +282,35 @@ def test_eval_refuses_bad_inputs_in_one_line(bag_and_model, tmp_path, capsys):
     corrupt.write_bytes(b"\x89MCAP0\r\n garbage")
     assert main(["eval", "--model", str(model_path), "--bag", str(corrupt)]) == 1
     assert "corrupt.mcap" in capsys.readouterr().err
+
+
+def test_rotation_nees_of_errors_drawn_from_the_reported_covariance_is_three():
+    """Steps whose rotation errors are drawn from their covariances give a mean NEES of 3 (chi-square,
+    3 degrees of freedom) and 99 % of them under the 99 % bound; covariances half as large double it.
+    The errors are recovered with scipy's rotation vectors, independently of the module's so3_log."""
+    from scipy.spatial.transform import Rotation
+
+    n = 3001
+    truth = random_trajectory(n, seed=11)
+    rng = np.random.default_rng(12)
+    factors = rng.normal(scale=0.01, size=(n - 1, 3, 3))
+    covariances = factors @ factors.transpose(0, 2, 1) + 1e-6 * np.eye(3)
+    errors = np.stack([rng.multivariate_normal(np.zeros(3), C) for C in covariances])
+    steps = [g.relative_transform(truth[i], truth[i + 1]) for i in range(n - 1)]
+    noisy = [step @ g.make_transform(Rotation.from_rotvec(e).as_matrix(), np.zeros(3)) for step, e in zip(steps, errors)]
+    estimate = ev.integrate_relative_poses(np.stack(noisy), start=truth[0])
+
+    result = ev.rotation_consistency(estimate, truth, covariances)
+    assert result["pairs"] == n - 1
+    assert result["mean_nees"] == pytest.approx(3.0, abs=0.2)  # the mean's standard error is sqrt(6 / n) = 0.045
+    assert result["within_99"] == pytest.approx(0.99, abs=0.006)
+    recovered = [Rotation.from_matrix((steps[i][:3, :3]).T @ noisy[i][:3, :3]).as_rotvec() for i in range(n - 1)]
+    expected = np.mean([e @ np.linalg.solve(C, e) for e, C in zip(recovered, covariances)])
+    assert result["mean_nees"] == pytest.approx(expected, rel=1e-6)
+
+    assert ev.rotation_consistency(estimate, truth, covariances / 2)["mean_nees"] == pytest.approx(2 * expected, rel=1e-6)
+    unknown = covariances.copy()
+    unknown[::2] = np.nan  # steps with no covariance (no pair run) are skipped
+    assert ev.rotation_consistency(estimate, truth, unknown)["pairs"] == (n - 1) // 2
+    with pytest.raises(ValueError, match="step covariances"):
+        ev.rotation_consistency(estimate, truth, covariances[1:])

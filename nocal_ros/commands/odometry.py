@@ -358,6 +358,9 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     poses_cam: list[np.ndarray] = []
     tracking: list[str] = []
     scale_sources: list[str] = []
+    # Each step's rotation covariance in the camera frame (NaN where no pair was run), for the report's NEES.
+    step_rotation_covariances: list[np.ndarray] = []
+    R_cam_base = invert_transform(estimator.T_base_cam)[:3, :3]
     camera_history: list[dict[str, Any]] = []  # the online camera after the first frame and at each keyframe
     frames_in = 0
     start, start_cpu = time.perf_counter(), time.process_time()
@@ -393,6 +396,11 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
             stamps.append(stamp_ns)
             poses_base.append(result.T_odom_base)
             poses_cam.append(result.T_odom_cam)
+            if result.gap and len(stamps) >= 2:
+                dt = (stamps[-1] - stamps[-2]) * 1e-9
+                step_rotation_covariances.append(R_cam_base @ result.twist_covariance[3:, 3:] @ R_cam_base.T * dt * dt)
+            else:
+                step_rotation_covariances.append(np.full((3, 3), np.nan))
             tracking.append(result.tracking)
             scale_sources.append(result.scale_source)
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
@@ -423,6 +431,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
         extras={"poses": len(all_stamps), "time_segments": len(segments),
                 "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
                 "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
+                "step_rotation_covariances": step_rotation_covariances[first:last],
                 "camera_history": camera_history,
                 "calibration_status": estimator.calibration_status(), "final_trajectory": final},
     )
@@ -532,6 +541,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report["final_trajectory"]["observations_found"] = int(final[4])  # by searching the keyframes
         if truth.calibration is not None:
             report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
+    covariances = replay.extras.get("step_rotation_covariances")
+    if covariances is not None and len(covariances) == len(replay.stamps_ns) and len(stamps) >= 2:
+        report["rotation_consistency"] = _rotation_consistency(replay, stamps, estimate, T_gt, covariances)
     report["method"] = getattr(estimator, "method", "vo")
     tracking = replay.extras.get("tracking") or []
     if tracking:
@@ -585,6 +597,21 @@ def _camera_history_errors(history: list[dict[str, Any]], like: Any, truth: Any)
                      "fx": entry["fx"], "fy": entry["fy"],
                      "focal_error_percent": evaluation.focal_error(camera, truth)["mean_percent"], "dr": dr})
     return rows
+
+
+def _rotation_consistency(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
+                          covariances: list[np.ndarray]) -> dict[str, Any]:
+    """The published steps' rotation NEES (:func:`nocal_ros.evaluation.rotation_consistency`) over the
+    matched poses; a step between matched poses that were not consecutive in the replay is skipped."""
+    from nocal_ros import evaluation
+
+    position = {int(stamp): k for k, stamp in enumerate(replay.stamps_ns.tolist())}
+    steps = []
+    for earlier, later in zip(stamps[:-1].tolist(), stamps[1:].tolist()):
+        k = position[int(later)]
+        consecutive = k > 0 and int(replay.stamps_ns[k - 1]) == int(earlier)
+        steps.append(covariances[k] if consecutive else np.full((3, 3), np.nan))
+    return evaluation.rotation_consistency(estimate, T_gt, np.array(steps))
 
 
 def _tracked_rpe(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
