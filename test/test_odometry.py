@@ -257,6 +257,34 @@ def test_propagation_of_a_zero_pair_keeps_the_covariance():
     np.testing.assert_allclose(out, sigma)
 
 
+def test_focal_step_covariance_covers_a_turn_measured_through_a_wrong_focal_length():
+    """The premise of :func:`focal_step_covariance`: a rotation read from rays through a focal length 30 %
+    long comes out short by about ``e / (1 + e)`` of its angle for a pan or a tilt (closed form,
+    ``atan(tan(theta) / (1 + e))`` at the image centre), and not at all for a roll; with that share as the
+    focal length's relative standard deviation the error is within one standard deviation per axis."""
+    import cv2
+
+    from nocal_ros.odometry.covariance import focal_step_covariance
+    from nocal_ros.odometry.initializer import rotation_from_rays, unit_rays
+
+    rng = np.random.default_rng(3)
+    K = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
+    e = 0.3
+    points = np.c_[rng.uniform(-1.0, 1.0, (400, 2)), rng.uniform(2.0, 5.0, 400)]
+    theta = np.radians(3.0)
+    for axis, expected_share in (([0, 1, 0], e / (1 + e)), ([1, 0, 0], e / (1 + e)), ([0, 0, 1], 0.0)):
+        R = so3_exp(theta * np.array(axis, float))  # X_cur = R^T X_ref: the camera turns by R
+        pixels = [cv2.projectPoints(points @ rotation.T, np.zeros(3), np.zeros(3), K, None)[0].reshape(-1, 2)
+                  for rotation in (np.eye(3), R.T)]
+        rays = [unit_rays((p - K[:2, 2]) / (K[0, 0] * (1 + e))) for p in pixels]  # through the long focal length
+        R_cur_ref = rotation_from_rays(rays[0], rays[1])
+        error = so3_log(R @ R_cur_ref)  # the measured turn R_ref_cur = R_cur_ref^T against the true R
+        assert np.linalg.norm(error) == pytest.approx(expected_share * theta, abs=0.08 * expected_share * theta + 1e-4)
+        step = make_transform(R, np.zeros(3))
+        sigma = focal_step_covariance(step, e / (1 + e))[3:, 3:]
+        assert (np.abs(error) <= np.sqrt(np.diag(sigma)) * 1.01).all()
+
+
 def test_reload_keeps_the_pose_and_restarts_the_chain():
     T_w_c = random_trajectory(6, seed=9)
     estimator, _ = make_estimator(T_w_c)

