@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from nocal_ros.geometry import invert_transform, nearest_rotation
+from nocal_ros.geometry import invert_transform, nearest_rotation, so3_exp, so3_log
 from nocal_ros.odometry.calibration import OnlineCamera
 from nocal_ros.odometry.frontend import FeatureTracker, TrackedFrame, TrackerSettings, solve_pnp
 from nocal_ros.odometry.initializer import rotation_ransac, two_view_map, unit_rays
@@ -66,6 +66,11 @@ class TrackingSettings:
             tried again within this many times it. A guess tens of percent off bends correct tracks by
             more than the threshold: KITTI's forward drive, through f = width 73 % long, lost its first
             maps at their second or fifth frame with fewer than 15 PnP inliers (docs/RESULTS.md).
+        guess_rotation_blend: through the guessed camera (before its first window, no calibration
+            given), a step's published rotation is PnP's moved this share of the way (on SO(3)) to the
+            rotation the tracks fit frame to frame; 0 publishes PnP's. Only what is published: the map,
+            the motion model and the camera never see it. Half the way was better on as many replays
+            but lost up to 25 % on the others, the demo's included (docs/RESULTS.md).
         init_min_reference_tracks: while initialising, a reference with fewer of its tracks left is
             replaced by the current frame, as ORB-SLAM's initialiser replaces its reference with fewer than
             100 matches: the essential matrix keeps only a share of them (through a guessed camera half or
@@ -86,6 +91,7 @@ class TrackingSettings:
     init_parallax_px: float = 5.0
     init_min_reference_tracks: int = 80
     guess_pnp_threshold_factor: float = 3.0
+    guess_rotation_blend: float = 0.33
 
 
 @dataclass
@@ -249,15 +255,8 @@ class VisualOdometry:
         1-2 deg (measured on held-out 160x120 bags); chained frame to frame, about 0.1 deg.
         """
         previous, R_ref_prev = self._chain
-        found, rows = _lookup(previous, tracked.ids)
-        calibration = self.camera.calibration
-        x_prev = calibration.undistorted_normalised(previous.pixels[rows])
-        x_cur = calibration.undistorted_normalised(tracked.pixels[found])
-        finite = np.isfinite(x_prev).all(1) & np.isfinite(x_cur).all(1)
-        R_ref_cur = R_ref_prev
-        if finite.sum() >= 3:
-            R, _ = rotation_ransac(unit_rays(x_prev[finite]), unit_rays(x_cur[finite]), threshold)
-            R_ref_cur = R_ref_prev @ R.T
+        R_prev_cur = _frame_rotation(previous, tracked, self.camera.calibration, threshold)
+        R_ref_cur = R_ref_prev if R_prev_cur is None else R_ref_prev @ R_prev_cur
         self._chain = (tracked, R_ref_cur)
         return R_ref_cur
 
@@ -349,13 +348,25 @@ class VisualOdometry:
             rescued = pnp is not None
         if pnp is None:
             return self._lose(frame, stamp_ns, True, len(tracked.ids))
-        self._previous = tracked
+        previous_tracks, self._previous = self._previous, tracked
         # A track whose landmark does not fit the pose is a mismatch (or a bad landmark): never use it again.
         outliers = tracked.ids[mask][~pnp.inliers]
         if len(outliers):
             self.tracker.drop(outliers)
         T_anchor_cur = invert_transform(T_w_anchor) @ pnp.T_w_c
         T_prev_cur = None if T_w_prev is None else invert_transform(T_w_prev) @ pnp.T_w_c
+        blend = settings.guess_rotation_blend
+        if blend and T_prev_cur is not None and previous_tracks is not None and self.camera.updates == 0 and not self.camera.given:
+            # Through the guessed camera the step's rotation has two estimates with errors of their own:
+            # PnP's, against a map made through the guess (its translation 49-146 deg off on 11 of 22
+            # first maps), and the tracks' rotation frame to frame, which takes the translation's
+            # parallax for a turn. A third of the way from PnP's published a better rotation on 16 of 23
+            # replays, a worse one on 3 (at most 12 %); the frame-to-frame rotation alone, on 14 and 5
+            # (docs/RESULTS.md).
+            R_chained = _frame_rotation(previous_tracks, tracked, calibration, threshold)
+            if R_chained is not None:
+                T_prev_cur = T_prev_cur.copy()
+                T_prev_cur[:3, :3] = T_prev_cur[:3, :3] @ so3_exp(blend * so3_log(T_prev_cur[:3, :3].T @ R_chained))
         with self.map.lock:  # the pose in the map as it is now, through the newest keyframe
             T = anchor.T_w_c @ T_anchor_cur
         T[:3, :3] = nearest_rotation(T[:3, :3])  # products of poses drift off SO(3) in the last digits
@@ -510,6 +521,19 @@ class VisualOdometry:
         pixels = calibration.project(points_c)
         ok = np.isfinite(pixels).all(1)
         return dict(zip(np.asarray(ids)[ok].tolist(), pixels[ok]))
+
+
+def _frame_rotation(previous: TrackedFrame, tracked: TrackedFrame, calibration, threshold: float) -> np.ndarray | None:
+    """``R_prev_cur`` fitted to the tracks two frames share (rays through ``calibration``, RANSAC at
+    ``threshold`` in normalised units), or None with fewer than 3 of them."""
+    found, rows = _lookup(previous, tracked.ids)
+    x_prev = calibration.undistorted_normalised(previous.pixels[rows])
+    x_cur = calibration.undistorted_normalised(tracked.pixels[found])
+    finite = np.isfinite(x_prev).all(1) & np.isfinite(x_cur).all(1)
+    if finite.sum() < 3:
+        return None
+    R, _ = rotation_ransac(unit_rays(x_prev[finite]), unit_rays(x_cur[finite]), threshold)
+    return R.T
 
 
 def _lookup(tracked: TrackedFrame, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
