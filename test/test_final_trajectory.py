@@ -47,11 +47,15 @@ def test_frames_are_posed_again_on_the_final_landmarks_through_the_final_camera(
     few[:8] = ids[:8]
     relative_record = FrameRecord(6, 1, local_map, first, T_tracked, few, opencv_pixels(T_true, points))
     keyframe_record = FrameRecord(0, 1, local_map, first, np.eye(4), ids, first.pixels)
+    # Frames of an initialisation reference given up before the map was made: no pose relative to it.
+    orphan_record = FrameRecord(2, 1, local_map, first, None, ids, opencv_pixels(T_true, points))
+    orphan_unposeable = FrameRecord(3, 1, local_map, first, None, few, opencv_pixels(T_true, points))
     # Bundle adjustment moved the keyframe after the frames were tracked.
     moved = pose([0.001, 0.0, 0.0], [0.0, 0.001, 0.0])
     first.T_w_c = moved.copy()
 
-    poses = final_map_poses([pnp_record, relative_record, keyframe_record], CAMERA, pixel_threshold=1.0)
+    poses = final_map_poses([pnp_record, relative_record, keyframe_record, orphan_record, orphan_unposeable],
+                            CAMERA, pixel_threshold=1.0)
 
     assert poses[5].how == "pnp"
     np.testing.assert_allclose(poses[5].T_map_cam, T_true, atol=1e-6)
@@ -59,6 +63,9 @@ def test_frames_are_posed_again_on_the_final_landmarks_through_the_final_camera(
     np.testing.assert_allclose(poses[6].T_map_cam, moved @ T_tracked, atol=1e-12)
     assert poses[0].how == "keyframe"
     np.testing.assert_allclose(poses[0].T_map_cam, moved, atol=1e-12)
+    assert poses[2].how == "pnp"
+    np.testing.assert_allclose(poses[2].T_map_cam, T_true, atol=1e-6)
+    assert 3 not in poses  # left at its published motion
     assert all(p.map_id == 1 and p.local_map is local_map for p in poses.values())
 
 

@@ -543,3 +543,40 @@ def test_recording_for_the_final_trajectory_does_not_change_what_is_published():
             break
     assert tracking.count("initialising") >= 3 and "ok" in tracking
     np.testing.assert_allclose(published[1], published[0], atol=1e-9)
+
+
+def test_the_frames_of_a_reference_given_up_are_posed_in_the_next_map_at_the_end(sequence):
+    """A reference given up while initialising (its tracks thinned out before they showed parallax) leaves
+    frames that no map was made from: tracked forward motion through KITTI's 1241x376 frames gives up its
+    first four. The tracks of those frames that live on into the next map make them poseable in it by PnP
+    at the end of a replay; they were left at their published motion (KITTI's final rotation error per
+    pair 0.465 -> 0.083 deg with them posed; here frame 0 to 2, 4.8 deg published, 0.12 deg measured)."""
+    from nocal_ros import evaluation
+
+    images = list(sequence.images[:30])
+    probe = OdometryEstimator(synchronous_mapping=True)
+    probe.process(int(sequence.stamps_ns[0]), images[0])
+    columns = np.sort(probe._vo.tracker.current().pixels[:, 0])
+    probe.close()
+    middle = len(columns) // 2
+    x0, x1 = int(np.floor(columns[middle - 60])), int(np.ceil(columns[middle + 60]))
+    # The second frame keeps about 60 of the first frame's tracks: the first reference is given up.
+    images[1] = np.full_like(images[1], 128)
+    images[1][:, x0:x1 + 1] = sequence.images[1][:, x0:x1 + 1]
+    estimator = OdometryEstimator(synchronous_mapping=True, record_trajectory=True)
+    results = []
+    for k, (stamp, image) in enumerate(zip(sequence.stamps_ns[:30], images)):
+        if k % 6 == 0:  # arm poses: the end's solve makes the given-up frames it can pose keyframes too
+            estimator.add_arm_pose(int(stamp), sequence.arm_poses[k])
+        results.append(estimator.process(int(stamp), image))
+    _, final, how = estimator.final_trajectory()
+    estimator.close()
+    assert results[1].tracking == "initialising" and how[0] in ("pnp", "keyframe"), how[:4]
+    published = np.array([r.T_odom_cam for r in results])
+    pair = [0, 2]
+    errors = {}
+    for name, estimate in (("published", published), ("final", final)):
+        rpe = evaluation.relative_pose_error(estimate[pair], sequence.ground_truth[pair], delta=1)
+        errors[name] = rpe["rotation_deg"]["rmse"]
+    print("rotation error, frame 0 to 2 (deg):", errors)
+    assert errors["final"] < 0.5 < errors["published"]

@@ -740,8 +740,9 @@ class OdometryEstimator:
         keyframes have arm poses, the map is solved with them and is metric; else the last scale
         published; the map's first frame goes where the frames before it lead, unless the map shares
         landmarks with the map before it: then it is placed in that map,
-        :func:`~nocal_ros.odometry.trajectory.link_maps`); any other frame (lost, or initialising a map
-        never made) keeps its published motion from the frame before it.
+        :func:`~nocal_ros.odometry.trajectory.link_maps`). A frame of an initialisation reference given up
+        before a map was made is posed in that map by PnP where its tracks' landmarks allow. Any other
+        frame (lost, or initialising a map never made) keeps its published motion from the frame before it.
         ``how`` says which: ``"keyframe"``, ``"pnp"``, ``"keyframe_relative"`` or ``"published"``.
         """
         from nocal_ros.odometry.local_mapping import fuse_landmarks, search_by_projection
@@ -882,8 +883,9 @@ class OdometryEstimator:
                                 self.settings.min_pnp_inliers)
         added = 0
         for record in records:
-            if poses[record.frame].how == "pnp":  # a frame the map cannot pose would only hold it wrong
-                local_map.add_keyframe(record.frame, stamps[record.frame], poses[record.frame].T_map_cam,
+            pose = poses.get(record.frame)
+            if pose is not None and pose.how == "pnp":  # a frame the map cannot pose would only hold it wrong
+                local_map.add_keyframe(record.frame, stamps[record.frame], pose.T_map_cam,
                                        record.ids, record.pixels)
                 added += 1
         return added

@@ -36,6 +36,8 @@ from nocal_ros.odometry.trajectory import FrameRecord
 #: Most bytes of keyframe images a recording VO keeps (about 1700 keyframes at 640x480); beyond it the
 #: oldest are let go, and those keyframes are not searched at the end (``keyframe_images_dropped``).
 KEYFRAME_IMAGE_BUDGET_BYTES = 512 * 2**20
+#: Most frames of given-up initialisation references a recording VO keeps for the next map (the newest).
+MAX_ABANDONED_FRAMES = 60
 
 
 @dataclass
@@ -175,11 +177,15 @@ class VisualOdometry:
         self._reference_image: np.ndarray | None = None  # the initialisation reference's, when recording
         self._rays_cache: tuple | None = None  # (keyframe, calibration, its pixels, their rays)
         self._initialising: list[tuple[int, np.ndarray, TrackedFrame]] = []  # (frame, R_ref_cur, tracks) since the reference
+        #: When recording: the frames of references given up before a map was made, (frame, tracks), for
+        #: the end of a replay to pose them in the next map by PnP (see :func:`final_map_poses`).
+        self._abandoned: deque[tuple[int, TrackedFrame]] = deque(maxlen=MAX_ABANDONED_FRAMES)
 
     def reset(self) -> None:
         self.mapping.wait()
         self.tracker.reset()
         self.records.clear()
+        self._abandoned.clear()
         self.keyframe_images.clear()
         self._image_bytes = 0
         self.map = None
@@ -230,11 +236,19 @@ class VisualOdometry:
         self._last = None
         self._previous = None
         # The corners just detected make this frame the reference of the next initialisation.
-        self._reference = None
+        self._abandon_reference()
         if textured:
             self._set_reference(frame, stamp_ns)
         # No motion is measured for this frame itself (its tracks start here): the estimator bridges it.
         return VOFrame(self.state if textured else "lost", map_id=self.map_id, tracks=tracks, textured=textured)
+
+    def _abandon_reference(self) -> None:
+        """Give up the initialisation's reference; when recording, keep its frames' tracks for the next map."""
+        if self.record and self._reference is not None:
+            self._abandoned.append((self._reference[0], self._reference[2]))
+            self._abandoned.extend((frame, tracks) for frame, _, tracks in self._initialising)
+        self._reference = None
+        self._initialising.clear()
 
     def _set_reference(self, frame: int, stamp_ns: int) -> None:
         """Make this frame (its tracks topped up) the reference of the next initialisation."""
@@ -269,6 +283,7 @@ class VisualOdometry:
         found, rows = _lookup(reference, tracked.ids) if reference is not None else (None, None)
         if reference is None or found.sum() < max(settings.min_tracks, settings.init_min_reference_tracks):
             # No reference yet, or too few of its tracks are left to make a map: start again from this frame.
+            self._abandon_reference()
             self._set_reference(frame, stamp_ns)
             return VOFrame(state, rotation_from_reference=np.eye(3), map_id=self.map_id, reference_frame=frame,
                            tracks=len(self.tracker))
@@ -318,6 +333,10 @@ class VisualOdometry:
             T_ref_between[:3, :3] = R_ref_between
             self._record(between, local_map, first, T_ref_between, tracks)
         self._initialising.clear()
+        for between, tracks in self._abandoned:  # no pose relative to the map: PnP alone places them
+            self.records.append(FrameRecord(between, self.map_id, local_map, first, None, tracks.ids.copy(),
+                                            tracks.pixels.copy(), local_map.unit_scale))
+        self._abandoned.clear()
         self._record(frame, local_map, keyframe, np.eye(4), current)
         self._submit(local_map, keyframe)
         return VOFrame("ok", T_map_cam=keyframe.T_w_c.copy(), covariance=None, map_id=self.map_id,

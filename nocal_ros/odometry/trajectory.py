@@ -34,7 +34,8 @@ class FrameRecord:
         local_map: the map it was tracked in (or, while initialising, the map its tracks then made).
         reference: the keyframe it was posed relative to (itself for a keyframe).
         T_kf_cam: ``(4, 4)`` its pose relative to ``reference`` when tracked (while initialising, the
-            rotation from the reference, with no translation).
+            rotation from the reference, with no translation); None for a frame of an initialisation
+            reference given up before this map was made, which only PnP can place in it.
         ids, pixels: its tracks, ``(N,)`` and ``(N, 2)`` native pixels.
         unit_scale: the map's ``unit_scale`` then (``T_kf_cam``'s unit).
     """
@@ -43,7 +44,7 @@ class FrameRecord:
     map_id: int
     local_map: LocalMap
     reference: Keyframe
-    T_kf_cam: np.ndarray
+    T_kf_cam: np.ndarray | None
     ids: np.ndarray
     pixels: np.ndarray
     unit_scale: float = 1.0
@@ -65,7 +66,8 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
 
     Returns ``{frame: FinalPose}`` with ``how`` one of ``"keyframe"`` (the keyframe's own,
     bundle-adjusted pose), ``"pnp"`` (posed again on its tracks' landmarks), or ``"keyframe_relative"``
-    (too few of its tracks have landmarks: its pose relative to its reference keyframe, as tracked).
+    (too few of its tracks have landmarks: its pose relative to its reference keyframe, as tracked). A
+    frame with no pose relative to the map (``T_kf_cam`` None) that PnP cannot pose is left out.
     """
     threshold = pixel_threshold / calibration.fx
     poses: dict[int, FinalPose] = {}
@@ -76,11 +78,15 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
                 poses[record.frame] = FinalPose(record.map_id, record.local_map, T_w_ref, "keyframe")
                 continue
             mask, positions = record.local_map.landmark_positions(record.ids)
-        T_kf_cam = record.T_kf_cam.copy()
-        T_kf_cam[:3, 3] *= record.local_map.unit_scale / record.unit_scale  # the map moved into other units since
-        guess = T_w_ref @ T_kf_cam
+        guess = None
+        if record.T_kf_cam is not None:
+            T_kf_cam = record.T_kf_cam.copy()
+            T_kf_cam[:3, 3] *= record.local_map.unit_scale / record.unit_scale  # the map moved into other units since
+            guess = T_w_ref @ T_kf_cam
         x = calibration.undistorted_normalised(record.pixels[mask])
         pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers, covariance=False)
+        if pnp is None and guess is None:
+            continue
         if pnp is None:
             poses[record.frame] = FinalPose(record.map_id, record.local_map, guess, "keyframe_relative")
         else:
