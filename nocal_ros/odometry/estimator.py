@@ -766,7 +766,18 @@ class OdometryEstimator:
                     log.warning("the end-of-replay search covers the newest %d keyframes only: %d keyframe "
                                 "images were let go (tracking.KEYFRAME_IMAGE_BUDGET_BYTES)",
                                 len(self._vo.keyframe_images), self._vo.keyframe_images_dropped)
-                for map_id, local_map in maps.items():
+                # One camera for every map: the map with the most keyframes solves it, and the others are
+                # solved through it, held (each solved with the camera free, the last one solved set the
+                # camera that posed every map's frames, whose landmarks another camera had placed:
+                # measured on r640_304, a 5-keyframe first map took the camera 4.8 % off before the
+                # 33-keyframe map took it back, and its frames were posed 1.6-2.6 deg off per pair).
+                # After a camera swapped at a cut (the last map rejected the camera carried into it),
+                # the last map's is the camera now.
+                owner = max(maps, key=lambda map_id: (len(maps[map_id].keyframes), map_id), default=None)
+                if maps and self._vo.camera.carried_check == "rejected":
+                    owner = max(maps)
+                for map_id in sorted(maps, key=lambda map_id: map_id != owner):
+                    local_map, hold = maps[map_id], map_id != owner
                     # Landmarks that are one scene point seen again tie the map's stretches together.
                     merged = fuse_landmarks(local_map, self._vo.camera.calibration, self.settings.pixel_threshold)
                     for record in self._vo.records:
@@ -774,11 +785,11 @@ class OdometryEstimator:
                             record.ids = np.array([merged.get(i, i) for i in record.ids.tolist()], dtype=np.int64)
                     if self.settings.mapping.search_landmarks and len(local_map.keyframes) >= 3:
                         # Solved whole first: the landmarks are searched for where that map projects them.
-                        self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
+                        self._vo.mapping.bundle_adjust(local_map, initialise=True, whole_map=True, hold_camera=hold)
                         self.final_observations_found += search_by_projection(
                             local_map, self._vo.camera.calibration, self._vo.keyframe_images,
                             self.settings.pixel_threshold, self._vo.tracker.work_scale)
-                    arm_scale = self._solve_whole_map(local_map)
+                    arm_scale = self._solve_whole_map(local_map, hold)
                     if arm_scale is not None:
                         scales[map_id] = arm_scale
                         metric.add(map_id)
@@ -890,14 +901,15 @@ class OdometryEstimator:
                 added += 1
         return added
 
-    def _solve_whole_map(self, local_map: "LocalMap") -> float | None:
-        """The end of a replay's solve of one map (see :meth:`final_trajectory`); with arm poses at three
-        or more of its keyframes, the map is moved into the arm's frame and metres and solved again with
-        them as factors, and 1.0 (its scale now) is returned, else None."""
+    def _solve_whole_map(self, local_map: "LocalMap", hold_camera: bool = False) -> float | None:
+        """The end of a replay's solve of one map (see :meth:`final_trajectory`; ``hold_camera``: through
+        the camera as it stands); with arm poses at three or more of its keyframes, the map is moved into
+        the arm's frame and metres and solved again with them as factors, and 1.0 (its scale now) is
+        returned, else None."""
         mapping = self._vo.mapping
         if len(local_map.keyframes) < 3:
             return None
-        mapping.bundle_adjust(local_map, initialise=True, whole_map=True)
+        mapping.bundle_adjust(local_map, initialise=True, whole_map=True, hold_camera=hold_camera)
         self._keyframes_at_arm_poses(local_map)
         arm = self._arm_keyframes(local_map)
         similarity = fit_arm_similarity(np.array([p for _, p, _ in arm]), np.array([a for _, _, a in arm])) if arm else None
@@ -907,7 +919,7 @@ class OdometryEstimator:
         # on heldout_160, arm poses on 10 % of frames: path length 0.85-1.16 of the truth per stretch):
         # as factors of the whole map's solve, the arm's positions take the drift out.
         local_map.transform(*similarity)
-        mapping.bundle_adjust(local_map, initialise=True, whole_map=True,
+        mapping.bundle_adjust(local_map, initialise=True, whole_map=True, hold_camera=hold_camera,
                               positions={index: a for index, _, a in arm})
         return 1.0
 

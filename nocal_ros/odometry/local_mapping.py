@@ -421,7 +421,8 @@ class LocalMapping:
         return (self.camera.given_check if kind == "given" else self.camera.carried_check) == "rejected"
 
     def bundle_adjust(self, local_map: LocalMap, initialise: bool = False, whole_map: bool = False,
-                      positions: dict[int, np.ndarray] | None = None, check: str = "") -> None:
+                      positions: dict[int, np.ndarray] | None = None, check: str = "",
+                      hold_camera: bool = False) -> None:
         """Windowed bundle adjustment over keyframes, landmarks and the camera (see the module notes).
 
         ``initialise``: a camera initialisation instead: every keyframe of the map (up to
@@ -438,6 +439,8 @@ class LocalMapping:
         camera keeps the last one); a camera never initialised stays as it is. ``positions``: measured
         camera positions of keyframes (``{keyframe index: position}``, an arm's, in the map's frame and
         unit), three or more: they hold the map's gauge and scale instead of its first keyframe.
+        ``hold_camera`` (with ``whole_map``): the camera as it stands, not solved (another map's solve
+        gave it); the map is still rebuilt through it.
         """
         from nocal_ros.odometry.bundle_adjustment import CameraPrior, WindowProblem, calibration_from_parameters, camera_parameters
 
@@ -500,6 +503,9 @@ class LocalMapping:
         freedom = self.camera_freedom(initialise, len(window), whole_map)
         if whole_map and self.camera.updates == 0 and not self.camera.given:
             freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
+        held_camera = whole_map and hold_camera and freedom != "fixed"
+        if held_camera:
+            freedom = "fixed"
         # Two or more held keyframes fix the gauge, scale included; otherwise the distance from the
         # oldest keyframe to a later one is held at its value from the previous windows.
         scale_pair = None if held >= 2 or measured is not None else (0, min(held + self.settings.scale_baseline, len(window) - 1))
@@ -520,7 +526,7 @@ class LocalMapping:
         # first ones through the guess): rebuilt through the converged camera it can leave that basin
         # (measured on 10 dev bags: chosen on one, r160_202, final rotation per frame 1.06 -> 0.49 deg;
         # the plain solve reprojected better on the others).
-        rebuild = whole_map and measured is None and freedom != "fixed"
+        rebuild = whole_map and measured is None and (freedom != "fixed" or held_camera)
         solution = self._solve(problem, hypotheses=hypotheses, rebuild=rebuild)
         if freedom == "full" and calibration.distortion_model == "plumb_bob" and not whole_map:
             # The tangential terms were tried: kept if significant, else solved again without them.
