@@ -8,7 +8,8 @@ Methods (``method=``)
     (:mod:`nocal_ros.odometry.tracking`, :mod:`~nocal_ros.odometry.local_mapping`): persistent tracks,
     PnP against a local map, windowed bundle adjustment over keyframes, landmarks and the camera in a
     worker thread, metric scale from arm poses or the NOCaL pose head (:mod:`~nocal_ros.odometry.scale`).
-    The pose head also bridges frames where geometry fails (``tracking="lost"``).
+    The pose head also bridges frames where geometry fails (``tracking="lost"``), with the rotation
+    the tracks show from the previous frame where they go on.
     ``"pose_head"``: the NOCaL pose head alone, integrated pair by pair (the paper's odometry).
 
 Frames and poses
@@ -681,6 +682,9 @@ class OdometryEstimator:
                     T_ci_cj = self._runner.run(previous_key, key)
                     inference_ms += (time.perf_counter() - start) * 1e3
                     if np.isfinite(T_ci_cj).all():
+                        if vo_frame.rotation_from_previous is not None:  # the tracks' turn, the pose head's length
+                            T_ci_cj = T_ci_cj.copy()
+                            T_ci_cj[:3, :3] = vo_frame.rotation_from_previous
                         T_new, source = T_prev @ T_ci_cj, "pose_head"
                         self.counters.pose_head_fallbacks += 1
         self._remember(frame, T_new)

@@ -120,6 +120,8 @@ class VOFrame:
             landmarks and the camera between frames, and the motion must not absorb those corrections.
         guess_rescued: posed only with ``TrackingSettings.guess_pnp_threshold_factor`` (through the
             guessed camera).
+        rotation_from_previous: ``R_prev_cur`` fitted to the tracks a frame that lost the map shares with
+            the previous frame (PnP failed; None when unknown).
     """
 
     state: str
@@ -136,6 +138,7 @@ class VOFrame:
     textured: bool = True
     T_prev_cur: np.ndarray | None = None
     guess_rescued: bool = False
+    rotation_from_previous: np.ndarray | None = None
 
 
 class VisualOdometry:
@@ -227,7 +230,8 @@ class VisualOdometry:
             return self._initialise(frame, stamp_ns, tracked)
         return self._track(frame, stamp_ns, tracked, guess)
 
-    def _lose(self, frame: int, stamp_ns: int, textured: bool, tracks: int) -> VOFrame:
+    def _lose(self, frame: int, stamp_ns: int, textured: bool, tracks: int,
+              rotation_from_previous: np.ndarray | None = None) -> VOFrame:
         """No pose from geometry this frame; the next frames start a new map. An untextured frame is "lost"."""
         if self.state == "ok":
             self.state = "lost"
@@ -240,7 +244,8 @@ class VisualOdometry:
         if textured:
             self._set_reference(frame, stamp_ns)
         # No motion is measured for this frame itself (its tracks start here): the estimator bridges it.
-        return VOFrame(self.state if textured else "lost", map_id=self.map_id, tracks=tracks, textured=textured)
+        return VOFrame(self.state if textured else "lost", map_id=self.map_id, tracks=tracks, textured=textured,
+                       rotation_from_previous=rotation_from_previous)
 
     def _abandon_reference(self) -> None:
         """Give up the initialisation's reference; when recording, keep its frames' tracks for the next map."""
@@ -366,7 +371,10 @@ class VisualOdometry:
                             min_inliers=settings.min_pnp_inliers)
             rescued = pnp is not None
         if pnp is None:
-            return self._lose(frame, stamp_ns, True, len(tracked.ids))
+            # The map is lost, not the tracks: the rotation they show from the previous frame is still
+            # measured (the pose head's, which bridged such a frame alone, was 3.1 deg off on r640_304).
+            rotation = None if self._previous is None else _frame_rotation(self._previous, tracked, calibration, threshold)
+            return self._lose(frame, stamp_ns, True, len(tracked.ids), rotation)
         previous_tracks, self._previous = self._previous, tracked
         # A track whose landmark does not fit the pose is a mismatch (or a bad landmark): never use it again.
         outliers = tracked.ids[mask][~pnp.inliers]
