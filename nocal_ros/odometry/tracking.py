@@ -54,6 +54,13 @@ class TrackingSettings:
             rotation between the frames taken out, that makes a keyframe.
         keyframe_landmark_share: a keyframe when fewer than this share of the landmarks tracked at the
             last keyframe are still inliers.
+        guess_keyframe_parallax_deg: ``keyframe_parallax_deg`` through the guessed camera (before its first
+            window, no calibration given). Angles through ``f = width`` are the true ones times
+            ``f_true / width``: half of them for a 90 degree lens. At the calibrated threshold a wide
+            camera made its 6th keyframe, and so its first camera window, late (frame 35 on r160_201,
+            f = 0.5 width), and every frame until then was published through the guess, 0.5-1 deg off per
+            step. At half of it the first window came at frame 10 instead of 15 (median over 23 replays),
+            and the published rotation per pair went 0.248 -> 0.208 deg (median; docs/RESULTS.md).
         max_keyframe_interval: frames after which a keyframe is made anyway.
         max_waiting_keyframes: while this many keyframes wait for local mapping, a keyframe is made only
             when tracking needs one to go on (too few landmarks or tracks left), not for parallax or
@@ -86,6 +93,7 @@ class TrackingSettings:
     min_pnp_inliers: int = 15
     keyframe_parallax_deg: float = 1.0
     keyframe_landmark_share: float = 0.6
+    guess_keyframe_parallax_deg: float = 0.5
     max_keyframe_interval: int = 20
     max_waiting_keyframes: int = 2
     init_min_points: int = 40
@@ -462,7 +470,9 @@ class VisualOdometry:
         R_now_last = T_w_c[:3, :3].T @ last.T_w_c[:3, :3]
         cosine = np.sum((rays_last @ R_now_last.T) * rays_now, axis=1)
         angles = np.degrees(np.arccos(np.clip(cosine[np.isfinite(cosine)], -1.0, 1.0)))
-        return len(angles) > 0 and float(np.median(angles)) >= settings.keyframe_parallax_deg
+        guessed = self.camera.updates == 0 and not self.camera.given
+        parallax = settings.guess_keyframe_parallax_deg if guessed else settings.keyframe_parallax_deg
+        return len(angles) > 0 and float(np.median(angles)) >= parallax
 
     def _keyframe_rays(self, keyframe: Keyframe, calibration) -> np.ndarray:
         """The undistorted normalised points of ``keyframe``'s pixels through ``calibration``, kept until
