@@ -415,6 +415,12 @@ class OnlineCamera:
                 variance = np.linalg.inv(self.initial_information)[0, 0]
             return float(np.sqrt(variance) / self._calibration.fx)
 
+    @property
+    def is_guess(self) -> bool:
+        """Still what it started as, and not given: no window has refined the guess (f = width or a learnt
+        camera) yet, so what is measured through it is only as good as that guess."""
+        return self.updates == 0 and not self.given
+
     def state(self) -> str:
         std = self.focal_std_px()
         if self.updates == 0 or std is None:

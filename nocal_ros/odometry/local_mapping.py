@@ -406,7 +406,7 @@ class LocalMapping:
         """
         focal, intrinsics, lens = self.settings.camera_stages
         keyframes = self.camera.keyframes
-        if not initialise and self.settings.camera_initialisation and not self.camera.given and self.camera.updates == 0:
+        if not initialise and self.settings.camera_initialisation and self.camera.is_guess:
             return "fixed"  # an uncalibrated camera waits for its initialisation
         if keyframes >= lens or initialise:
             if self.camera.calibration.distortion_model == "equidistant":
@@ -511,7 +511,7 @@ class LocalMapping:
             prior_mean, prior_information = anchored_prior(self.camera, initial=initialise, start=start)
         prior = CameraPrior(calibration_from_parameters(prior_mean, calibration), prior_information)
         freedom = self.camera_freedom(initialise, len(window), whole_map)
-        if whole_map and self.camera.updates == 0 and not self.camera.given:
+        if whole_map and self.camera.is_guess:
             freedom = "fixed"  # no initialisation was taken: the stream did not tell the camera
         held_camera = whole_map and hold_camera and freedom != "fixed"
         if held_camera:

@@ -350,8 +350,7 @@ class VisualOdometry:
             self._record(between, local_map, first, T_ref_between, tracks)
         self._initialising.clear()
         for between, tracks in self._abandoned:  # no pose relative to the map: PnP alone places them
-            self.records.append(FrameRecord(between, self.map_id, local_map, first, None, tracks.ids.copy(),
-                                            tracks.pixels.copy(), local_map.unit_scale))
+            self._record(between, local_map, first, None, tracks)
         self._abandoned.clear()
         self._record(frame, local_map, keyframe, np.eye(4), current)
         self._submit(local_map, keyframe)
@@ -376,7 +375,7 @@ class VisualOdometry:
         rays = calibration.undistorted_normalised(tracked.pixels)
         pnp = solve_pnp(positions, rays[mask], threshold, guess=guess, min_inliers=settings.min_pnp_inliers)
         rescued = False
-        if pnp is None and self.camera.updates == 0 and not self.camera.given:
+        if pnp is None and self.camera.is_guess:
             # Only as a rescue: a wider threshold on every frame through the guess broke three dev maps.
             pnp = solve_pnp(positions, rays[mask], settings.guess_pnp_threshold_factor * threshold, guess=guess,
                             min_inliers=settings.min_pnp_inliers)
@@ -394,7 +393,7 @@ class VisualOdometry:
         T_anchor_cur = invert_transform(T_w_anchor) @ pnp.T_w_c
         T_prev_cur = None if T_w_prev is None else invert_transform(T_w_prev) @ pnp.T_w_c
         blend = settings.guess_rotation_blend
-        if blend and T_prev_cur is not None and previous_tracks is not None and self.camera.updates == 0 and not self.camera.given:
+        if blend and T_prev_cur is not None and previous_tracks is not None and self.camera.is_guess:
             # Through the guessed camera the step's rotation has two estimates with errors of their own:
             # PnP's, against a map made through the guess (its translation 49-146 deg off on 11 of 22
             # first maps), and the tracks' rotation frame to frame, which takes the translation's
@@ -447,10 +446,11 @@ class VisualOdometry:
             self._image_bytes -= self.keyframe_images.pop(oldest).nbytes
             self.keyframe_images_dropped += 1
 
-    def _record(self, frame: int, local_map: LocalMap, reference: Keyframe, T_kf_cam: np.ndarray,
+    def _record(self, frame: int, local_map: LocalMap, reference: Keyframe, T_kf_cam: np.ndarray | None,
                 tracks: TrackedFrame) -> None:
         if self.record:
-            self.records.append(FrameRecord(frame, self.map_id, local_map, reference, T_kf_cam.copy(),
+            self.records.append(FrameRecord(frame, self.map_id, local_map, reference,
+                                            None if T_kf_cam is None else T_kf_cam.copy(),
                                             tracks.ids.copy(), tracks.pixels.copy(), local_map.unit_scale))
 
     def _is_keyframe(self, frame: int, tracked: TrackedFrame, rays: np.ndarray, inliers: int, T_w_c: np.ndarray,
@@ -473,8 +473,7 @@ class VisualOdometry:
         R_now_last = T_w_c[:3, :3].T @ last.T_w_c[:3, :3]
         cosine = np.sum((rays_last @ R_now_last.T) * rays_now, axis=1)
         angles = np.degrees(np.arccos(np.clip(cosine[np.isfinite(cosine)], -1.0, 1.0)))
-        guessed = self.camera.updates == 0 and not self.camera.given
-        parallax = settings.guess_keyframe_parallax_deg if guessed else settings.keyframe_parallax_deg
+        parallax = settings.guess_keyframe_parallax_deg if self.camera.is_guess else settings.keyframe_parallax_deg
         return len(angles) > 0 and float(np.median(angles)) >= parallax
 
     def _keyframe_rays(self, keyframe: Keyframe, calibration) -> np.ndarray:
