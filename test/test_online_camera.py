@@ -210,3 +210,23 @@ def test_a_camera_carried_into_a_new_map_is_checked_against_its_statistic_and_dr
     assert undecided.check_detail
     undecided.begin_map()
     assert undecided.given_check == "pending" and undecided.check_detail == {}  # its first check: focal hypotheses
+
+
+def test_the_relative_focal_std_is_no_less_than_the_last_move_of_the_focal_length():
+    from nocal_ros.odometry.calibration import GUESS_STD, calibration_information
+
+    camera = OnlineCamera(camera_with(160.0, 160.0), "guess")
+    # Before any window: the guess's prior (its focal std, tied to the other focal by the aspect prior).
+    guess_std = np.sqrt(np.linalg.inv(calibration_information(camera_with(160.0, 160.0), GUESS_STD))[0, 0]) / 160.0
+    assert 0.5 * GUESS_STD["focal"] < guess_std <= GUESS_STD["focal"]
+    assert camera.relative_focal_std() == pytest.approx(guess_std, rel=1e-12)
+    tight = np.diag([0.01] * 8)  # a window that claims 0.1 px
+    camera.update(camera_with(120.0, 121.0), tight)
+    assert camera.relative_focal_std() == pytest.approx(40.0 / 120.0, rel=1e-12)  # the move, not the 0.08 %
+    camera.update(camera_with(121.2, 121.0), tight)
+    assert camera.relative_focal_std() == pytest.approx(1.2 / 121.2, rel=1e-12)
+    loose = np.diag([9.0] * 8)  # 3 px, more than the last move
+    camera.update(camera_with(121.2, 121.0), loose)
+    assert camera.relative_focal_std() == pytest.approx(3.0 / 121.2, rel=1e-12)
+    camera.reset(camera_with(160.0, 160.0), "guess")
+    assert camera.relative_focal_std() == pytest.approx(guess_std, rel=1e-12)
