@@ -482,6 +482,8 @@ class FinetuneJob:
     """
 
     TERMINAL = ("succeeded", "failed", "cancelled")
+    #: Seconds a worker has to exit after its result before it is terminated.
+    exit_grace_s = 5.0
 
     def __init__(self, config: FinetuneConfig, worker: Callable = _worker_main) -> None:
         self.config = config
@@ -612,7 +614,13 @@ class FinetuneJob:
                 log.error("fine-tuning worker failed:\n%s", message["traceback"])
         message["state"] = self.state
         if self.state in self.TERMINAL and self._process is not None:
-            self._process.join(timeout=5)
+            # The result is sent: what is left is the worker's exit. A worker slow to exit (interpreter
+            # teardown on a loaded machine) is stopped, so no caller finds a finished job's worker alive.
+            self._process.join(timeout=self.exit_grace_s)
+            if self._process.is_alive():
+                log.warning("fine-tuning worker %s had not exited %.0f s after its result; terminating it",
+                            self._process.pid, self.exit_grace_s)
+                self._stop_process()
 
     def _stop_process(self) -> None:
         process = self._process

@@ -39,6 +39,13 @@ def worker_that_ignores_cancel(config_values, messages, cancel, log_level):
         time.sleep(0.05)
 
 
+def worker_that_lingers_after_cancelling(config_values, messages, cancel, log_level):
+    """Says it was cancelled, then does not exit (a slow interpreter teardown on a loaded machine)."""
+    messages.put({"type": "cancelled", "message": "cancelled during training; previous model kept"})
+    while True:
+        time.sleep(0.05)
+
+
 # ---- helpers -----------------------------------------------------------------------------------
 
 
@@ -146,6 +153,17 @@ def test_cancel_escalates_to_kill_when_worker_ignores_it(tmp_path):
     assert job.state == "cancelled" and "terminated" in job.error
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+    job.close()
+
+
+def test_a_finished_jobs_worker_is_gone_even_when_it_lingers_after_its_result(tmp_path):
+    job = FinetuneJob(FinetuneConfig(bags=["unused.mcap"], output=str(tmp_path / "store")),
+                      worker=worker_that_lingers_after_cancelling)
+    job.exit_grace_s = 0.5
+    job.start()
+    assert job.wait(timeout=60) == "cancelled" and "previous model kept" in job.error
+    with pytest.raises(ProcessLookupError):  # reaped, not a zombie the trainer node's test would find
+        os.kill(job.pid, 0)
     job.close()
 
 
