@@ -159,6 +159,7 @@ def ros(checkpoint, tmp_path):
         # Wait until each publisher has matched its subscriber both ways, or the first messages are lost
         # to discovery (the node's TF broadcaster counts the harness's and the node's own /tf listeners).
         assert wait_for(lambda: harness.images.get_subscription_count() > 0
+                        and node.subscription.get_publisher_count() > 0
                         and node.odom_publisher.get_subscription_count() > 0
                         and node.camera_info_publisher.get_subscription_count() > 0
                         and node.diagnostics_publisher.get_subscription_count() > 0

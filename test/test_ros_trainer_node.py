@@ -78,6 +78,17 @@ class Harness(Node):
         self.arm.publish(pose)
 
 
+def matched_both_ways(harness: Harness, trainer: TrainerNode, subscriptions: int) -> bool:
+    """The harness's camera and arm publishers and the recording's subscriptions have matched each other.
+
+    A publisher can see its subscription before the subscription has matched the publisher; a best
+    effort image sent in between is dropped by the reader, so both sides are waited for.
+    """
+    recording = trainer._recording_subscriptions
+    return (harness.images.get_subscription_count() > 0 and harness.arm.get_subscription_count() > 0
+            and len(recording) == subscriptions and all(s.get_publisher_count() > 0 for s in recording))
+
+
 @pytest.fixture(scope="module")
 def field_data(tmp_path_factory):
     import torch
@@ -198,7 +209,7 @@ def test_record_then_start_fine_tunes_on_the_recording_and_the_odometry_node_rel
     assert not harness.call("trainer_node/record", SetBool, SetBool.Request(data=True)).success  # one at a time
     refused = harness.call("trainer_node/start")
     assert not refused.success and "stop it first" in refused.message
-    assert wait_for(lambda: harness.images.get_subscription_count() > 0 and harness.arm.get_subscription_count() > 0)
+    assert wait_for(lambda: matched_both_ways(harness, trainer, 2))
 
     for k in range(len(live)):  # the arm's pose is the camera's (T_tool_cam is the identity here)
         harness.play(live.images[k], live.arm_poses[k], int(live.stamps_ns[k]))
@@ -232,7 +243,7 @@ def test_a_recording_stops_itself_at_its_duration_limit(nodes, field_data):
     trainer, odometry, harness, store = nodes
     live = field_data["live"]
     assert harness.call("trainer_node/record", SetBool, SetBool.Request(data=True)).success
-    assert wait_for(lambda: harness.images.get_subscription_count() > 0)
+    assert wait_for(lambda: matched_both_ways(harness, trainer, 2))
     harness.play(live.images[0], live.arm_poses[0], int(live.stamps_ns[0]))
     assert wait_for(lambda: trainer.recorder is not None and trainer.recorder.frames == 1)
     assert wait_for(lambda: "recorded" in harness.stages(), 20)
