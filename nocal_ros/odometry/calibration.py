@@ -217,6 +217,10 @@ class OnlineCamera:
 
     def __init__(self, calibration: CameraCalibration, source: str, residual_px: float = 0.0) -> None:
         self._lock = threading.Lock()
+        self._start(calibration, source, residual_px)
+
+    def _start(self, calibration: CameraCalibration, source: str, residual_px: float) -> None:
+        """Everything known about the camera is what ``calibration`` (from ``source``) says (hold the lock)."""
         self._calibration = calibration
         self.source = source
         self.residual_px = float(residual_px)
@@ -485,17 +489,4 @@ class OnlineCamera:
 
     def reset(self, calibration: CameraCalibration, source: str, residual_px: float = 0.0) -> None:
         with self._lock:
-            self._calibration = calibration
-            self.source = source
-            self.residual_px = float(residual_px)
-            self.covariance = None
-            self.initial_calibration = calibration
-            self.initial_information = initial_information(calibration, source)
-            self._carry_from_start()
-            self.given = source == "file"
-            self.updates = 0
-            self.keyframes = 0
-            self.last_focal_move = 0.0
-            self.tangential = False
-            self.given_check = "pending" if self.given else ""
-            self.carried_check, self._carried_start, self.check_detail, self.rejected_start = "", None, {}, None
+            self._start(calibration, source, residual_px)
