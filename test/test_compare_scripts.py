@@ -116,6 +116,17 @@ def test_table_rows_and_the_no_motion_row_from_the_ground_truth(tmp_path, capsys
     spread = np.sqrt(np.mean(np.sum((positions - positions.mean(0)) ** 2, axis=1)))
     assert lines[4].startswith("| no motion") and f"| {np.sqrt(np.mean(steps**2)):.4f} / 2.000 | {spread:.4f} |" in lines[4]
     assert lines[4].endswith("| 12/12 |")
+    # REPORT#final: the final trajectory's figures, labelled as such; a report without one is refused.
+    final = {**evaluation.summary(evaluation.trajectory_errors(sequence.stamps_ns, truth, truth)), "seconds": 0.25,
+             "poses": 12, "calibration": evaluation.calibration_errors(sequence.calibration, sequence.calibration)}
+    (tmp_path / "final.json").write_text(json.dumps({**vo, "final_trajectory": final}))
+    assert table.main([f"{tmp_path / 'final.json'}#final", f"{tmp_path / 'report.json'}#final"]) == 1
+    out, err = capsys.readouterr()
+    assert "no final trajectory" in err and len(err.strip().splitlines()) == 1
+    assert table.main([f"{tmp_path / 'final.json'}#final"]) == 0
+    row = capsys.readouterr().out.strip().splitlines()[2]
+    assert row.startswith("| nocal odometry (keyframe VO, arm-pose scale), final | 0.00 % | 0.0000 | 0.0000 / 0.000 |")
+    assert "| 0.2 s | 12/12 |" in row
 
 
 def test_rpe_after_a_frame_reads_exact_stamps_and_scores_only_the_later_pairs(tmp_path, capsys):

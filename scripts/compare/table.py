@@ -1,10 +1,13 @@
 """Markdown table rows from ``report.json`` files of ``nocal odometry`` and ``scripts/compare/colmap.py``.
 
-    python scripts/compare/table.py [--no-motion BAG [--max-frames N]] [LABEL=]REPORT.json ...
+    python scripts/compare/table.py [--no-motion BAG [--max-frames N]] [LABEL=]REPORT.json[#final] ...
 
 One row per report: method, focal error %, ``dr``, RPE per pair (RMSE, m / deg), APE after Sim(3)
 alignment (RMSE, m), wall time (and the process's CPU time, which repeats on a shared machine), and frames with a pose of frames in the bag. The label defaults to the
 report's method (COLMAP and its settings; for ``nocal odometry`` whether two-view geometry was used).
+``REPORT.json#final`` gives the row of a ``nocal odometry`` replay's final trajectory (``trajectory_final.tum``:
+every frame posed again in the final map and camera) instead of what it published; its time is the
+final solves' own.
 
 ``--no-motion BAG`` adds the row of an estimate that never moves, from the bag's ``/ground_truth/pose``
 at its image stamps: its RPE is the true motion per pair itself (``evaluation.relative_pose_error``
@@ -36,6 +39,18 @@ def default_label(report: dict) -> str:
     events = report.get("events", {})
     path = "two-view" if events.get("two_view_pairs", 0) > 0 else "pose head alone"
     return f"nocal odometry ({path})"
+
+
+def final_report(report: dict, path: str) -> dict:
+    """A ``nocal odometry`` report with its final trajectory's figures in place of the published ones."""
+    from nocal_ros.errors import NocalError
+
+    final = report.get("final_trajectory")
+    if not final or "rpe" not in final:
+        raise NocalError(f"{path}: no final trajectory in this report (nocal odometry writes one at the end of a replay)")
+    keys = ("calibration", "rpe", "ape_sim3", "seconds", "poses")
+    return {**{k: v for k, v in report.items() if k not in keys + ("cpu_seconds", "evaluated_poses")},
+            **{k: final[k] for k in keys if k in final}}
 
 
 def report_row(label: str, report: dict) -> str:
@@ -98,11 +113,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for item in args.reports:
             label, _, path = item.rpartition("=") if "=" in item else ("", "", item)
+            path, final = (path[: -len("#final")], True) if path.endswith("#final") else (path, False)
             try:
                 report = json.loads(Path(path).read_text(encoding="utf-8"))
             except (OSError, ValueError) as error:
                 raise NocalError(f"{path}: cannot read a report ({error})") from None
-            rows.append(report_row(label or default_label(report), report))
+            if final:
+                report = final_report(report, path)
+            rows.append(report_row(label or default_label(report) + (", final" if final else ""), report))
         if args.no_motion is not None:
             rows.append(no_motion_row(no_motion(args.no_motion, args.gt_topic, args.image_topic, args.max_frames)))
     except NocalError as error:
