@@ -236,6 +236,9 @@ class OnlineCamera:
         #: Whether plumb_bob's tangential terms are estimated: a camera initialisation found them
         #: significant (``local_mapping.TANGENTIAL_SIGNIFICANCE``); else they stay where they started.
         self.tangential = False
+        #: Whether plumb_bob's radial terms are estimated in the windows: until a camera initialisation after
+        #: the first holds them where they started (``local_mapping.RADIAL_SIGNIFICANCE``).
+        self.radial = True
         #: A given calibration's check against the stream (:meth:`check_start`): "pending" until decided,
         #: then "confirmed" (checked again at each new map) or "rejected"; "" for a camera that was not given.
         self.given_check = "pending" if self.given else ""

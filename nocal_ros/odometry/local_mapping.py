@@ -21,7 +21,9 @@ An uncalibrated camera is held in the windows until a **camera initialisation** 
 6th, 10th, 16th, 25th and 40th keyframe (then every 20th), the window's solve is replaced by one over
 all the map's keyframes (the last 40) with the camera and its lens free and only the guess as prior, as
 ORB-SLAM3 initialises its inertial parameters in full solves after 2, 5 and 15 s (from the 25th on they
-also try plumb_bob's tangential terms, kept where significant: :data:`TANGENTIAL_SIGNIFICANCE`). The first chooses
+also try plumb_bob's tangential terms, kept where significant: :data:`TANGENTIAL_SIGNIFICANCE`; after the
+first, the radial terms are held at zero where they are not significant and holding them leaves the
+focal length where it was: :data:`RADIAL_SIGNIFICANCE`). The first chooses
 among focal hypotheses (:mod:`nocal_ros.odometry.camera_initialisation`) and is taken once its focal
 length's standard deviation is below :data:`INITIALISATION_FOCAL_STD`. Measured on 10 dev bags (six
 random cameras, the held-out, fisheye and VAMR bags): windows alone from ``f = width`` left one camera
@@ -97,6 +99,18 @@ TANGENTIAL_MIN_KEYFRAMES = 25
 #: again without them. Free everywhere, they went 10-20 times their true size on low-distortion and
 #: 160x120 cameras (r160_211: 0.0018 against 0.0001) and the principal point with them (measured).
 TANGENTIAL_SIGNIFICANCE = 9.21
+#: The same test for plumb_bob's radial terms (k1, k2) of a camera nobody calibrated, at each camera
+#: initialisation after the map's first (which has the fewest keyframes to tell): below it they are held
+#: where they started (zero for the guess) in that solve and the windows after it, until an
+#: initialisation finds them significant. A lens without distortion (KITTI's rectified frames) otherwise
+#: lets k1 trade with the focal length in forward motion (the clip's final focal length 4.5 % off with
+#: them free, 2.8 % held; its frames 20-50 1.7 %, 1.2 %).
+RADIAL_SIGNIFICANCE = 9.21
+#: ... and only where holding them moves the focal length by less than this many of its standard
+#: deviations (the solve with them free): a real but faint lens, held at zero, takes the focal length
+#: with it (r160_205, k1 +0.039 at 160x120: 89.8 +- 3.5 px free, 85.1 px held, truth 90.1; KITTI's clip
+#: 677 +- 20 px free, 682 px held, truth 719).
+RADIAL_HOLD_FOCAL_MOVE = 0.5
 
 
 @dataclass
@@ -413,7 +427,11 @@ class LocalMapping:
                 return "full"
             # plumb_bob's tangential terms stay where they are in the windows (TANGENTIAL_MIN_KEYFRAMES).
             tangential = initialise and not self.camera.given and solve_keyframes >= TANGENTIAL_MIN_KEYFRAMES
-            return "full" if tangential and (self.camera.tangential or not whole_map) else "radial"
+            if tangential and (self.camera.tangential or not whole_map):
+                return "full"
+            # The radial terms: tried at each initialisation, free elsewhere unless one held them.
+            radial = self.camera.given or self.camera.radial or (initialise and not whole_map)
+            return "radial" if radial else "intrinsics"
         if keyframes >= intrinsics:
             return "intrinsics"
         return "focal" if keyframes >= focal else "fixed"
@@ -544,14 +562,32 @@ class LocalMapping:
         if freedom == "full" and calibration.distortion_model == "plumb_bob" and not whole_map:
             # The tangential terms were tried: kept if significant, else solved again without them.
             initial = camera_parameters(self.camera.initial_calibration)[6:8]
-            significance = tangential_significance(solution, initial) if solution.success else 0.0
+            significance = lens_significance(solution, initial, slice(6, 8)) if solution.success else 0.0
             self.camera.tangential = significance >= TANGENTIAL_SIGNIFICANCE
+            self.camera.radial |= self.camera.tangential  # a lens decentred enough to show is a lens
             if not self.camera.tangential:
                 freedom = "radial"
                 start = camera_parameters(calibration)
                 start[6:8] = initial
                 problem = replace(problem, calibration=calibration_from_parameters(start, calibration), camera=freedom)
                 solution = self._solve(problem, hypotheses=hypotheses, rebuild=rebuild)
+        if (freedom == "radial" and calibration.distortion_model == "plumb_bob" and initialise and not whole_map
+                and not kind and not self.camera.given):
+            # The radial terms were tried: after the first initialisation they are held where they started
+            # when they are not significant and holding them leaves the focal length where it was.
+            initial = camera_parameters(self.camera.initial_calibration)[4:6]
+            self.camera.radial = (self.camera.updates == 0 or not solution.success
+                                  or lens_significance(solution, initial, slice(4, 6)) >= RADIAL_SIGNIFICANCE)
+            if not self.camera.radial:
+                start = camera_parameters(calibration)
+                start[4:6] = initial
+                without_problem = replace(problem, calibration=calibration_from_parameters(start, calibration), camera="intrinsics")
+                without = self._solve(without_problem, hypotheses=hypotheses, rebuild=rebuild)
+                moved = focal_move(solution, without)
+                if without.success and moved < RADIAL_HOLD_FOCAL_MOVE:
+                    freedom, problem, solution = "intrinsics", without_problem, without
+                else:
+                    self.camera.radial = True
         if hypotheses and not kind and solution.success and solution.camera_covariance is not None:
             focal_std = np.sqrt(max(solution.camera_covariance[0, 0], 0.0)) / solution.calibration.fx
             if focal_std > INITIALISATION_FOCAL_STD:
@@ -637,18 +673,30 @@ def _import_solver() -> None:
     load_libraries()
 
 
-def tangential_significance(solution: Any, start: np.ndarray) -> float:
-    """The Wald statistic ``d^T Cov(d)^-1 d`` of a plumb_bob solution's tangential terms ``(p1, p2)``
-    against where they ``start`` ed, ``d`` their difference (0 without a camera covariance: nothing
-    shows them)."""
+def focal_move(free: Any, held: Any) -> float:
+    """How far a solve with some camera terms held moved ``fx`` from the solve with them free, in the free
+    solve's standard deviations of ``fx`` (infinite without its covariance: nothing says it is small)."""
+    covariance = free.camera_covariance
+    if covariance is None or not np.isfinite(covariance[0, 0]) or covariance[0, 0] <= 0:
+        return float("inf")
+    return float(abs(held.calibration.fx - free.calibration.fx) / np.sqrt(covariance[0, 0]))
+
+
+def lens_significance(solution: Any, start: np.ndarray, terms: slice) -> float:
+    """The Wald statistic ``d^T Cov(d)^-1 d`` of two of a plumb_bob solution's camera parameters
+    (:func:`~nocal_ros.odometry.bundle_adjustment.camera_parameters` order: ``slice(4, 6)`` the radial
+    ``k1, k2``, ``slice(6, 8)`` the tangential ``p1, p2``) against where they ``start`` ed, ``d`` their
+    difference (0 without a camera covariance: nothing shows them)."""
+    from nocal_ros.odometry.bundle_adjustment import camera_parameters
+
     covariance = solution.camera_covariance
     if covariance is None:
         return 0.0
-    p = np.asarray(solution.calibration.D[2:4], dtype=np.float64) - np.asarray(start, dtype=np.float64)
-    block = covariance[6:8, 6:8]
-    if not np.all(np.isfinite(block)) or np.linalg.matrix_rank(block) < 2:
+    d = camera_parameters(solution.calibration)[terms] - np.asarray(start, dtype=np.float64)
+    block = covariance[terms, terms]
+    if not np.all(np.isfinite(block)) or np.linalg.matrix_rank(block) < len(d):
         return 0.0
-    return float(p @ np.linalg.solve(block, p))
+    return float(d @ np.linalg.solve(block, d))
 
 
 def window_information(covariance: np.ndarray, prior_information: np.ndarray | None) -> np.ndarray:
