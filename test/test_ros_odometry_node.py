@@ -352,7 +352,7 @@ def test_a_url_camera_info_manager_would_not_accept_stops_the_node_with_one_line
 
 def test_arm_poses_from_a_pose_topic_reach_the_estimator_with_the_hand_eye(ros):
     node, harness = ros(arm_pose_source="pose", T_tool_cam=T_TOOL_CAM.ravel().tolist())
-    assert wait_for(lambda: harness.arm.get_subscription_count() > 0)
+    assert wait_for(lambda: harness.arm.get_subscription_count() > 0 and node.arm_subscription.get_publisher_count() > 0)
     stamps = [START_NS + k * PERIOD_NS for k in range(3)]
     for k, stamp in enumerate(stamps):
         msg = PoseStamped()

@@ -177,12 +177,13 @@ class OdometryNode(Node):
         topic = "image/compressed" if p["compressed"] else "image"
         self.subscription = self.create_subscription(image_type, topic, self._on_image, qos,
                                                      callback_group=MutuallyExclusiveCallbackGroup())
+        self.arm_subscription = None  # arm poses on a topic (arm_pose_source "pose"); TF is looked up instead
         if self.arm_pose_source == "pose":
             # Best effort matches both reliable and best-effort arm drivers; 50 deep rides out a busy executor.
             arm_qos = QoSProfile(history=qos_profile_sensor_data.history, depth=50,
                                  reliability=qos_profile_sensor_data.reliability)
-            self.create_subscription(PoseStamped, "arm_pose", self._on_arm_pose, arm_qos,
-                                     callback_group=MutuallyExclusiveCallbackGroup())
+            self.arm_subscription = self.create_subscription(PoseStamped, "arm_pose", self._on_arm_pose, arm_qos,
+                                                             callback_group=MutuallyExclusiveCallbackGroup())
         services = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=services)
         self.create_service(Trigger, "~/reload_model", self._on_reload, callback_group=services)
