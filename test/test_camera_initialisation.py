@@ -124,11 +124,11 @@ def test_a_merged_batch_takes_the_initialisation_any_of_its_keyframes_reached():
 
 
 def initialised_with_lens(D: tuple[float, float, float, float], keyframes: int = 40, landmarks: int = 600,
-                          first: bool = False, noise_px: float = 0.3) -> tuple[CameraCalibration, OnlineCamera]:
-    """A map of ``keyframes`` keyframes posed where their pixels were projected from (OpenCV, ``noise_px``
-    noise, 640x480, the lens ``D`` = k1, k2, p1, p2), whose camera is the true one with no lens, after a
-    camera initialisation (the map's first when ``first``, else a later one: no focal hypotheses):
-    ``(true camera, online camera)``."""
+                          first: bool = False, unknown: slice = slice(4, 8)) -> tuple[CameraCalibration, OnlineCamera]:
+    """A map of ``keyframes`` keyframes posed where their pixels were projected from (OpenCV, 0.3 px
+    noise, 640x480, the lens ``D`` = k1, k2, p1, p2), whose camera is the true one with the ``unknown``
+    camera parameters at zero (the whole lens by default), after a camera initialisation (the map's first
+    when ``first``, else a later one: no focal hypotheses): ``(true camera, online camera)``."""
     from nocal_ros.odometry.bundle_adjustment import calibration_from_parameters, camera_parameters
     from nocal_ros.odometry.map import LocalMap
     from test_bundle_adjustment import opencv_pixels
@@ -140,11 +140,11 @@ def initialised_with_lens(D: tuple[float, float, float, float], keyframes: int =
     local_map = LocalMap()
     for k, T_w_c in enumerate(poses):
         rows = keyframe_index == k
-        pixels = opencv_pixels(camera, T_w_c, points[point_index[rows]]) + rng.normal(0, noise_px, (rows.sum(), 2))
+        pixels = opencv_pixels(camera, T_w_c, points[point_index[rows]]) + rng.normal(0, 0.3, (rows.sum(), 2))
         local_map.add_keyframe(k, k, T_w_c, point_index[rows], pixels)
     local_map.landmarks = dict(enumerate(points))
     parameters = camera_parameters(camera)
-    parameters[4:8] = 0.0
+    parameters[unknown] = 0.0
     start = calibration_from_parameters(parameters, camera)
     online = OnlineCamera(start, "guess")
     if not first:
@@ -155,12 +155,13 @@ def initialised_with_lens(D: tuple[float, float, float, float], keyframes: int =
 
 
 def initialised_with_tangential(tangential: tuple[float, float], min_keyframes: int | None = None, monkeypatch=None):
-    """:func:`initialised_with_lens` of a lens with k1 -0.25 and these tangential terms, over 40 keyframes."""
+    """:func:`initialised_with_lens` of a lens with k1 -0.25, k2 0.08 and these tangential terms, over 40
+    keyframes, started from the true camera with its tangential terms at zero."""
     from nocal_ros.odometry import local_mapping
 
     if min_keyframes is not None:
         monkeypatch.setattr(local_mapping, "TANGENTIAL_MIN_KEYFRAMES", min_keyframes)
-    return initialised_with_lens((-0.25, 0.0, *tangential))
+    return initialised_with_lens((-0.25, 0.08, *tangential), unknown=slice(6, 8))
 
 
 def principal_point_error(camera: CameraCalibration, estimate: CameraCalibration) -> float:

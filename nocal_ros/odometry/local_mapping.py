@@ -72,6 +72,7 @@ from nocal_ros.odometry.map import Keyframe, LocalMap, parallax_deg, triangulate
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry.bundle_adjustment import WindowProblem
 
 log = logging.getLogger(__name__)
 
@@ -567,9 +568,7 @@ class LocalMapping:
             self.camera.radial |= self.camera.tangential  # a lens decentred enough to show is a lens
             if not self.camera.tangential:
                 freedom = "radial"
-                start = camera_parameters(calibration)
-                start[6:8] = initial
-                problem = replace(problem, calibration=calibration_from_parameters(start, calibration), camera=freedom)
+                problem = held_at_start(problem, slice(6, 8), initial, freedom)
                 solution = self._solve(problem, hypotheses=hypotheses, rebuild=rebuild)
         if (freedom == "radial" and calibration.distortion_model == "plumb_bob" and initialise and not whole_map
                 and not kind and not self.camera.given):
@@ -579,9 +578,7 @@ class LocalMapping:
             self.camera.radial = (self.camera.updates == 0 or not solution.success
                                   or lens_significance(solution, initial, slice(4, 6)) >= RADIAL_SIGNIFICANCE)
             if not self.camera.radial:
-                start = camera_parameters(calibration)
-                start[4:6] = initial
-                without_problem = replace(problem, calibration=calibration_from_parameters(start, calibration), camera="intrinsics")
+                without_problem = held_at_start(problem, slice(4, 6), initial, "intrinsics")
                 without = self._solve(without_problem, hypotheses=hypotheses, rebuild=rebuild)
                 moved = focal_move(solution, without)
                 if without.success and moved < RADIAL_HOLD_FOCAL_MOVE:
@@ -671,6 +668,16 @@ def _import_solver() -> None:
 
     importlib.import_module("nocal_ros.odometry.camera_initialisation")
     load_libraries()
+
+
+def held_at_start(problem: WindowProblem, terms: slice, start: np.ndarray, freedom: str) -> WindowProblem:
+    """``problem`` with the camera parameters ``terms`` (``camera_parameters`` order) put back at
+    ``start`` and the camera freedom ``freedom``, which leaves them out: to solve again without them."""
+    from nocal_ros.odometry.bundle_adjustment import calibration_from_parameters, camera_parameters
+
+    parameters = camera_parameters(problem.calibration)
+    parameters[terms] = start
+    return replace(problem, calibration=calibration_from_parameters(parameters, problem.calibration), camera=freedom)
 
 
 def focal_move(free: Any, held: Any) -> float:
