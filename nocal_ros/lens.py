@@ -561,6 +561,19 @@ class CameraCalibration:
         D = self.D if xp is np else xp.as_tensor(self.D, dtype=pixels.dtype, device=pixels.device)
         return undistort_normalised(self.distorted_normalised(pixels), D, self.distortion_model)
 
+    def pixel_jacobians(self, undistorted: np.ndarray) -> np.ndarray | None:
+        """``d(pixel) / d(undistorted normalised)`` ``(N, 2, 2)`` at undistorted normalised points ``(N, 2)``.
+
+        How many pixels a move of a ray's ``(x/z, y/z)`` makes: ``f`` at a pinhole's centre, a sixth of
+        that radially near a 120-degree fisheye's edge. None for ``rational_polynomial`` (no analytic
+        Jacobian here).
+        """
+        if self.distortion_model not in ("plumb_bob", "equidistant"):
+            return None
+        d_distorted, _ = distortion_jacobians(np.asarray(undistorted, dtype=np.float64).reshape(-1, 2), self.D,
+                                              self.distortion_model)
+        return self.K[:2, :2] @ d_distorted  # pixel = K[:2, :2] distorted + principal point
+
     def pixel_rays(self, width: int | None = None, height: int | None = None, supersample: int = 1) -> np.ndarray:
         """The per-pixel ray table: unit directions ``(H, W, k*k, 3)`` through each subpixel sample.
 

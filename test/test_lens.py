@@ -112,6 +112,26 @@ def test_torch_matches_numpy_and_is_differentiable(model):
     assert torch.allclose(rays_t, torch.from_numpy(points / np.linalg.norm(points, axis=1, keepdims=True)), atol=1e-10)
 
 
+@pytest.mark.parametrize("model", ["plumb_bob", "equidistant"])
+def test_pixel_jacobians_are_finite_differences_of_opencvs_projection(model):
+    camera = CAMERAS[model]
+    points = random_points(np.random.default_rng(4), n=50, half_angle_deg=60.0)
+    xy = points[:, :2] / points[:, 2:]
+
+    def opencv_pixels(normalised):
+        rays = np.column_stack((normalised, np.ones(len(normalised))))[:, None, :]
+        if model == "equidistant":
+            pixels, _ = cv2.fisheye.projectPoints(rays, np.zeros(3), np.zeros(3), camera.K, camera.D)
+        else:
+            pixels, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera.K, camera.D)
+        return pixels.reshape(-1, 2)
+
+    step = 1e-6
+    expected = np.stack([(opencv_pixels(xy + step * e) - opencv_pixels(xy - step * e)) / (2 * step) for e in np.eye(2)], 2)
+    np.testing.assert_allclose(camera.pixel_jacobians(xy), expected, rtol=1e-5, atol=1e-3)
+    assert CAMERAS["rational_polynomial"].pixel_jacobians(xy) is None
+
+
 def test_scale_intrinsics_keeps_pixel_areas_aligned():
     # Downsampling 2x: the centre of the top-left 2x2 block (u = 0.5) becomes pixel 0.
     scaled = scale_intrinsics(K, 0.5, 0.5)

@@ -27,7 +27,7 @@ import numpy as np
 
 from nocal_ros.geometry import invert_transform, nearest_rotation, so3_exp, so3_log
 from nocal_ros.odometry.calibration import OnlineCamera
-from nocal_ros.odometry.frontend import FeatureTracker, TrackedFrame, TrackerSettings, solve_pnp
+from nocal_ros.odometry.frontend import FeatureTracker, TrackedFrame, TrackerSettings, ray_whitening, solve_pnp
 from nocal_ros.odometry.initializer import rotation_ransac, two_view_map, unit_rays
 from nocal_ros.odometry.local_mapping import LocalMapping, MappingSettings, refine_two_keyframes
 from nocal_ros.odometry.map import Keyframe, LocalMap
@@ -373,12 +373,14 @@ class VisualOdometry:
         threshold = settings.pixel_threshold / calibration.fx
         # Every track's ray once: PnP takes those with landmarks, the keyframe decision the rest.
         rays = calibration.undistorted_normalised(tracked.pixels)
-        pnp = solve_pnp(positions, rays[mask], threshold, guess=guess, min_inliers=settings.min_pnp_inliers)
+        whitening = ray_whitening(calibration, rays[mask])
+        pnp = solve_pnp(positions, rays[mask], threshold, guess=guess, min_inliers=settings.min_pnp_inliers,
+                        whitening=whitening)
         rescued = False
         if pnp is None and self.camera.is_guess:
             # Only as a rescue: a wider threshold on every frame through the guess broke three dev maps.
             pnp = solve_pnp(positions, rays[mask], settings.guess_pnp_threshold_factor * threshold, guess=guess,
-                            min_inliers=settings.min_pnp_inliers)
+                            min_inliers=settings.min_pnp_inliers, whitening=whitening)
             rescued = pnp is not None
         if pnp is None:
             # The map is lost, not the tracks: the rotation they show from the previous frame is still
