@@ -257,3 +257,20 @@ def test_a_small_frame_is_tracked_enlarged_and_its_tracks_come_back_in_native_pi
     native = FeatureTracker(TrackerSettings(min_work_width=0))
     native.track(image)
     assert native.gray.shape == (120, 160) and native.work_scale == (1.0, 1.0)
+
+
+def test_blend_rotation_moves_along_the_geodesic_and_widens_the_rotation_by_the_disagreement():
+    from nocal_ros.odometry.tracking import blend_rotation
+
+    step = make_transform(so3_exp(np.array([0.01, 0.03, -0.02])), np.array([0.1, 0.0, 0.02]))
+    offset = np.array([0.0, np.radians(2.0), np.radians(1.0)])  # the tracks' rotation, in the step's frame
+    R_tracks = step[:3, :3] @ so3_exp(offset)
+    covariance = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6])
+    blended, widened = blend_rotation(step, covariance, R_tracks, 0.33)
+    np.testing.assert_allclose(so3_log(step[:3, :3].T @ blended[:3, :3]), 0.33 * offset, atol=1e-12)
+    np.testing.assert_allclose(blended[:3, 3], step[:3, 3])
+    np.testing.assert_allclose(widened - covariance, np.diag([0, 0, 0] + [offset @ offset] * 3), atol=1e-15)
+    assert np.array_equal(covariance, np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6]))  # not modified in place
+    same, unchanged = blend_rotation(step, covariance, step[:3, :3], 0.33)
+    np.testing.assert_allclose(same, step, atol=1e-15)
+    np.testing.assert_allclose(unchanged, covariance)
