@@ -16,9 +16,13 @@ pixel -> ray map of the VO), so a better calibration pays off at once.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from nocal_ros.lens import CameraCalibration
 
 #: Lucas-Kanade window and pyramid levels (each level halves the image): the window of the search between
 #: keyframes far apart in the stream (``local_mapping.search_by_projection``) and the default.
@@ -346,8 +350,8 @@ def pose_covariance(T_w_c: np.ndarray, points_w: np.ndarray, sigma: float,
 
     The Gauss-Newton information ``J^T J / sigma^2`` of the reprojection residuals at the solution.
 
-    With ``whitening`` ``(N, 2, 2)`` (:func:`ray_whitening`), ``sigma`` is image noise in units of
-    ``1 / fx`` and each point's normalised noise its own, ``sigma^2 W^-1 W^-T``: the covariance of the
+    With ``whitening`` ``(N, 2, 2)`` (:func:`ray_whitening`), ``sigma`` is image noise in pixels over
+    ``fx`` and each point's normalised noise its own, ``sigma^2 W^-1 W^-T``: the covariance of the
     unweighted least-squares pose is then the sandwich ``A^-1 B A^-1``, ``A = sum J^T J``,
     ``B = sum J^T sigma^2 W^-1 W^-T J`` (equal to the plain form where every ``W`` is the identity).
     """
@@ -432,7 +436,7 @@ def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
     return PnPResult(best, mask, pose_covariance(best, object_points[inliers], sigma, weights))
 
 
-def ray_whitening(calibration, undistorted: np.ndarray) -> np.ndarray | None:
+def ray_whitening(calibration: CameraCalibration, undistorted: np.ndarray) -> np.ndarray | None:
     """``(N, 2, 2)`` whitening of the rays ``undistorted`` (normalised) for :func:`solve_pnp`.
 
     How many pixels a move of each ray makes (``CameraCalibration.pixel_jacobians``), over ``fx``: the
