@@ -131,6 +131,36 @@ def test_lost_tracking_reinitialises_and_never_jumps_confidently(sequence, other
     assert results[first_ok_after].pose_covariance[0, 0] >= LOST_STD["translation_m"] ** 2
 
 
+def test_the_tracks_rotation_widens_a_step_only_while_the_focal_length_is_uncertain(sequence, monkeypatch):
+    """A step's rotation is compared with the tracks' (``tracking.blend_rotation``) through the guessed
+    camera, where it is also blended, and after the first window for as long as the focal length is known
+    to worse than ``uncertain_focal_share``, where it only widens the covariance; through a known camera
+    or a settled one, never (measured here: frames 5-8 blended, 9-13 compared, none after, none with the
+    true calibration given)."""
+    import nocal_ros.odometry.tracking as tracking_module
+
+    blend_rotation = tracking_module.blend_rotation
+    for calibration in (CAMERA, None):
+        calls, frame = [], [0]
+
+        def recording(T_prev_cur, covariance, R_tracks, blend):
+            calls.append((frame[0], blend))
+            return blend_rotation(T_prev_cur, covariance, R_tracks, blend)
+
+        monkeypatch.setattr(tracking_module, "blend_rotation", recording)
+        estimator = OdometryEstimator(calibration=calibration, synchronous_mapping=True)
+        for frame[0], (stamp, image) in enumerate(zip(sequence.stamps_ns, sequence.images)):
+            estimator.process(int(stamp), image)
+        estimator.close()
+        if calibration is not None:
+            assert calls == []
+            continue
+        blended = [f for f, blend in calls if blend > 0]
+        compared = [f for f, blend in calls if blend == 0]
+        assert blended and compared and max(blended) < min(compared)
+        assert max(compared) < 40  # the camera settles (the stream is 80 frames)
+
+
 def test_a_frame_that_loses_the_map_but_not_its_tracks_turns_as_the_tracks_show(sequence, monkeypatch):
     """PnP can fail on a frame whose tracks go on (r640_304's frame 13, at a hard stretch). Its step was
     the pose head's alone, rotation and length; the rotation is now fitted to the tracks the frame shares

@@ -80,6 +80,14 @@ class TrackingSettings:
             rotation the tracks fit frame to frame; 0 publishes PnP's. Only what is published: the map,
             the motion model and the camera never see it. Half the way was better on as many replays
             but lost up to 25 % on the others, the demo's included (docs/RESULTS.md).
+        uncertain_focal_share: while the online camera's focal length is known to worse than this share of
+            its value (after its first window; through the guess always), a step's rotation from PnP is
+            compared with the one the tracks fit frame to frame and their distance widens its covariance
+            (:func:`blend_rotation`): both read the image through that focal length, and where they part,
+            one is wrong by as much. It covered r640_307's steps after a first initialisation 64-89 % off
+            (rotation NEES 2.30 -> 0.90); at 5 % the tracks' own error (the parallax they take for a turn)
+            published r160_205's steps 0.05-0.17 deg off at 0.6-0.85 deg (docs/RESULTS.md). A settled
+            camera never pays for it.
         init_min_reference_tracks: while initialising, a reference with fewer of its tracks left is
             replaced by the current frame, as ORB-SLAM's initialiser replaces its reference with fewer than
             100 matches: the essential matrix keeps only a share of them (through a guessed camera half or
@@ -102,6 +110,7 @@ class TrackingSettings:
     init_min_reference_tracks: int = 80
     guess_pnp_threshold_factor: float = 3.0
     guess_rotation_blend: float = 0.33
+    uncertain_focal_share: float = 0.10
 
 
 @dataclass
@@ -396,16 +405,18 @@ class VisualOdometry:
         T_anchor_cur = invert_transform(T_w_anchor) @ pnp.T_w_c
         T_prev_cur = None if T_w_prev is None else invert_transform(T_w_prev) @ pnp.T_w_c
         covariance = pnp.covariance
-        blend = settings.guess_rotation_blend
-        if blend and T_prev_cur is not None and previous_tracks is not None and self.camera.is_guess:
-            # Through the guessed camera the step's rotation has two estimates with errors of their own:
-            # PnP's, against a map made through the guess (its translation 49-146 deg off on 11 of 22
-            # first maps), and the tracks' rotation frame to frame, which takes the translation's
-            # parallax for a turn. A third of the way from PnP's published a better rotation on 16 of 23
-            # replays, a worse one on 3 (at most 12 %); the frame-to-frame rotation alone, on 14 and 5
-            # (docs/RESULTS.md).
+        guess = self.camera.is_guess
+        if T_prev_cur is not None and previous_tracks is not None and (
+                guess or self.camera.relative_focal_std() > settings.uncertain_focal_share):
+            # Through an uncertain camera the step's rotation has two estimates with errors of their own:
+            # PnP's, against a map made through that camera (through the guess its translation 49-146 deg
+            # off on 11 of 22 first maps), and the tracks' rotation frame to frame, which takes the
+            # translation's parallax for a turn. Through the guess, a third of the way from PnP's
+            # published a better rotation on 16 of 23 replays, a worse one on 3 (at most 12 %); the
+            # frame-to-frame rotation alone, on 14 and 5 (docs/RESULTS.md).
             R_chained = _frame_rotation(previous_tracks, tracked, calibration, threshold)
             if R_chained is not None:
+                blend = settings.guess_rotation_blend if guess else 0.0
                 T_prev_cur, covariance = blend_rotation(T_prev_cur, covariance, R_chained, blend)
         with self.map.lock:  # the pose in the map as it is now, through the newest keyframe
             T = anchor.T_w_c @ T_anchor_cur
