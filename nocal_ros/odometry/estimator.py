@@ -44,8 +44,8 @@ Covariance (how it is derived)
     for a VO frame, the PnP pose's covariance from the inliers' reprojection information (the
     information of a motion-only bundle adjustment against the map), each ray's noise the image noise
     through the lens at its pixel (:func:`~nocal_ros.odometry.frontend.pose_covariance`) and, through
-    the guessed camera, the distance between PnP's and the tracks' rotation of the step added to each
-    rotation axis (:func:`~nocal_ros.odometry.tracking.blend_rotation`), with the translation scaled
+    the guessed camera or one whose focal length is still uncertain, the distance between PnP's and the
+    tracks' rotation of the step added to each rotation axis (:func:`~nocal_ros.odometry.tracking.blend_rotation`), with the translation scaled
     to metres; while initialising and for the pose head, the spread of the pose head's error per frame
     recorded by training (``pose_error_std`` in the checkpoint, else :data:`DEFAULT_POSE_ERROR_STD`),
     times the gap ``g`` in frames; when lost, :data:`LOST_STD`. A step measured by geometry through the

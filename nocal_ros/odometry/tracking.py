@@ -121,7 +121,8 @@ class VOFrame:
         state: ``"initialising"``, ``"ok"`` or ``"lost"`` (see the module notes).
         T_map_cam: ``(4, 4)`` pose in the map (``"ok"`` only).
         covariance: ``(6, 6)`` of ``T_map_cam`` (right perturbation, ``(rho, theta)``, map units); through the
-            guessed camera widened by the step's two rotations' distance (:func:`blend_rotation`).
+            guessed camera, or one whose focal length is still uncertain (``uncertain_focal_share``),
+            widened by the step's two rotations' distance (:func:`blend_rotation`).
         rotation_from_reference: ``R_ref_cur`` chained frame to frame while initialising, and at the frame a
             new map starts at (None when unknown).
         direction_from_reference: the unit direction of travel from the reference while initialising,
