@@ -355,7 +355,11 @@ def pose_covariance(T_w_c: np.ndarray, points_w: np.ndarray, sigma: float,
     unweighted least-squares pose is then the sandwich ``A^-1 B A^-1``, ``A = sum J^T J``,
     ``B = sum J^T sigma^2 W^-1 W^-T J`` (equal to the plain form where every ``W`` is the identity).
     """
-    _, J = _pose_jacobians(T_w_c, points_w)
+    return _covariance_of(_pose_jacobians(T_w_c, points_w)[1], sigma, whitening)
+
+
+def _covariance_of(J: np.ndarray, sigma: float, whitening: np.ndarray | None) -> np.ndarray:
+    """:func:`pose_covariance` from the residuals' Jacobians ``J`` ``(N, 2, 6)``."""
     stacked = J.reshape(-1, 6)
     if whitening is None:
         return np.linalg.pinv(stacked.T @ stacked / sigma**2)
@@ -427,13 +431,13 @@ def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
     weights = None if whitening is None else np.asarray(whitening, dtype=np.float64).reshape(-1, 2, 2)[index[inliers]]
     if weights is not None and not (np.isfinite(weights).all() and (np.abs(np.linalg.det(weights)) > 1e-12).all()):
         weights = None  # a ray at a lens's fold has no noise model: every point alike, as without one
+    projected, J = _pose_jacobians(best, object_points[inliers])
+    residuals = projected - image_points[inliers]
     if weights is not None:  # the residuals as image noise
-        projected, _ = _pose_jacobians(best, object_points[inliers])
-        errors = np.full(len(errors), np.nan)
-        errors[inliers] = np.linalg.norm(np.einsum("nij,nj->ni", weights, projected - image_points[inliers]), axis=1)
+        residuals = np.einsum("nij,nj->ni", weights, residuals)
     # Noise from the inliers' own spread (at least a tenth of the threshold: a perfect fit is not certainty).
-    sigma = max(float(np.sqrt(np.mean(errors[inliers] ** 2))), 0.1 * threshold)
-    return PnPResult(best, mask, pose_covariance(best, object_points[inliers], sigma, weights))
+    sigma = max(float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))), 0.1 * threshold)
+    return PnPResult(best, mask, _covariance_of(J, sigma, weights))
 
 
 def ray_whitening(calibration: CameraCalibration, undistorted: np.ndarray) -> np.ndarray | None:
