@@ -385,8 +385,10 @@ class VisualOdometry:
         # Every track's ray once: PnP takes those with landmarks, the keyframe decision the rest.
         rays = calibration.undistorted_normalised(tracked.pixels)
         whitening = ray_whitening(calibration, rays[mask])
+        # The robust refinement only through a solved camera: through the guess the residuals hold the
+        # camera's own error, which a loss scaled to the noise would take for outliers.
         pnp = solve_pnp(positions, rays[mask], threshold, guess=guess, min_inliers=settings.min_pnp_inliers,
-                        whitening=whitening)
+                        whitening=whitening, robust=not self.camera.is_guess)
         rescued = False
         if pnp is None and self.camera.is_guess:
             # Only as a rescue: a wider threshold on every frame through the guess broke three dev maps.
@@ -528,7 +530,8 @@ class VisualOdometry:
                 mask, positions = self.map.landmark_positions(self._previous.ids)
                 rays = calibration.undistorted_normalised(self._previous.pixels[mask])
                 again = solve_pnp(positions, rays, self.settings.pixel_threshold / calibration.fx, guess=T_w_prev,
-                                  min_inliers=self.settings.min_pnp_inliers, covariance=False)
+                                  min_inliers=self.settings.min_pnp_inliers, covariance=False,
+                                  whitening=ray_whitening(calibration, rays), robust=not self.camera.is_guess)
                 if again is not None:
                     T_w_prev = again.T_w_c
                     self._last = (reference, invert_transform(reference.T_w_c) @ T_w_prev)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nocal_ros.odometry.frontend import solve_pnp
+from nocal_ros.odometry.frontend import ray_whitening, solve_pnp
 from nocal_ros.odometry.map import Keyframe, LocalMap
 
 
@@ -84,7 +84,8 @@ def final_map_poses(records: list[FrameRecord], calibration, pixel_threshold: fl
             T_kf_cam[:3, 3] *= record.local_map.unit_scale / record.unit_scale  # the map moved into other units since
             guess = T_w_ref @ T_kf_cam
         x = calibration.undistorted_normalised(record.pixels[mask])
-        pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers, covariance=False)
+        pnp = solve_pnp(positions, x, threshold, guess=guess, min_inliers=min_inliers, covariance=False,
+                        whitening=ray_whitening(calibration, x), robust=True)
         if pnp is None and guess is None:
             continue
         if pnp is None:
