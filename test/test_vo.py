@@ -495,27 +495,34 @@ def test_published_rotation_covariance_covers_the_steps_measured_through_the_gue
     and were published 1.8-2.3 deg off with a covariance of 0.07-0.1 deg per axis. With the camera's
     uncertainty in the step covariance, the mean rotation NEES over 30 steps is below the 99 % bound of
     one consistent step (measured 1.2, 29 of 30 steps within it; 52 and 24 of 30 without it), and the
-    steps five frames or more after the camera's first window are still reported at a tenth of a
-    degree or so (measured: at most 0.135 deg per axis)."""
+    steps tracked once the camera's focal length is known to within ``uncertain_focal_share`` are
+    reported at a tenth of a degree or so again, the camera's uncertainty no longer in them (measured:
+    0.10-0.23 deg per axis, against 0.37-0.68 deg while it is not; how long the camera stays uncertain
+    after its first window differs from one CPU to another: 5 frames on an Intel Xeon, 7 and then
+    3 more on an AMD EPYC)."""
     from nocal_ros.data.synthetic import random_calibration
     from nocal_ros.evaluation import CHI2_3DOF_99, rotation_consistency
+    from nocal_ros.odometry.tracking import TrackingSettings
 
     camera = random_calibration(np.random.default_rng([205, 7]), WIDTH, HEIGHT)
     frames = render_sequence(camera, 31, 205, split="test")
     estimator = OdometryEstimator(synchronous_mapping=True)
-    results, states = [], []
+    share = TrackingSettings().uncertain_focal_share
+    results, known = [], []
     for stamp, image in zip(frames.stamps_ns, frames.images):
+        camera_now = estimator._camera  # the camera this frame is tracked through
+        known.append(camera_now is not None and not camera_now.is_guess and camera_now.relative_focal_std() <= share)
         results.append(estimator.process(int(stamp), image))
-        states.append(estimator.calibration_status()["state"])
     estimator.close()
     dt = np.diff(frames.stamps_ns) * 1e-9
     covariances = np.array([r.twist_covariance[3:, 3:] * step**2 for r, step in zip(results[1:], dt)])
     consistency = rotation_consistency(np.array([r.T_odom_cam for r in results]), frames.ground_truth, covariances)
     assert consistency["pairs"] == 30
     assert consistency["mean_nees"] < CHI2_3DOF_99 and consistency["within_99"] >= 0.9
-    refined = [k - 1 for k, state in enumerate(states) if k and state != "prior"]  # steps into frames after a window
-    assert len(refined) >= 10
-    assert np.degrees(np.sqrt(covariances[refined[5:]].diagonal(axis1=1, axis2=2).max())) < 0.3
+    std_deg = np.degrees(np.sqrt(covariances.diagonal(axis1=1, axis2=2).max(axis=1)))
+    settled = np.array(known[1:])  # steps into frames tracked through a camera known to within the share
+    assert settled.sum() >= 5 and (~settled).sum() >= 5
+    assert std_deg[settled].max() < 0.3 and np.median(std_deg[~settled]) > 2 * np.median(std_deg[settled])
 
 
 def test_steps_through_the_guessed_camera_publish_a_rotation_between_pnp_and_the_tracks():
@@ -686,9 +693,10 @@ def test_every_map_of_a_replay_is_solved_at_the_end_through_the_one_final_camera
 def test_later_camera_initialisations_rebuild_a_map_placed_through_a_short_guess():
     """A narrow camera (r640_301's: 640x480, f 752 px, so f = width guesses 15 % short) places its first
     keyframes through the guess, and the camera initialisations after the first solved in that map's
-    basin: 13.4 % off after 60 frames (measured). Each also rebuilds the map through the camera it starts
-    from and keeps whichever solve reprojects better (``MappingSettings.rebuild_initialisations``): 2.6 %
-    off (measured; the 150-frame replay ends 0.49 % off against 3.95 %). Rendered at 640x480: 8 s."""
+    basin: 13.4 % off after 60 frames (measured on an Intel Xeon; 5.9 % on an AMD EPYC, where the render
+    and OpenCV's kernels differ). Each also rebuilds the map through the camera it starts from and keeps
+    whichever solve reprojects better (``MappingSettings.rebuild_initialisations``): 2.6 % off (1.2 % on
+    the AMD; the 150-frame replay ends 0.49 % off against 3.95 %). Rendered at 640x480: 8 s."""
     from nocal_ros.data.synthetic import random_calibration
     from nocal_ros.odometry.local_mapping import MappingSettings
     from nocal_ros.odometry.tracking import TrackingSettings
@@ -704,4 +712,4 @@ def test_later_camera_initialisations_rebuild_a_map_placed_through_a_short_guess
         estimator.close()
         assert [r.tracking for r in results].count("ok") >= 50
     print("focal error after 60 frames, without and with the rebuild:", error)
-    assert error[True] < 0.05 < 0.08 < error[False]
+    assert error[True] < 0.05 and error[False] > max(0.04, 3 * error[True])
