@@ -6,6 +6,7 @@ without it; the others run everywhere.
 
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from real_recordings import REAL, needs_real
 from nocal_ros import evaluation
 from nocal_ros.data.bags import read_camera_info, write_sequence
 from nocal_ros.data.sequence import FrameSequence
-from nocal_ros.geometry import make_transform
+from nocal_ros.geometry import make_transform, so3_log
 from nocal_ros.lens import CameraCalibration
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts" / "compare"
@@ -226,3 +227,59 @@ def test_camera_swap_runs_one_estimator_through_both_bags_and_refuses_bags_of_tw
     c = write_sequence(wider, tmp_path / "c")
     assert camera_swap.main([str(a), str(c)]) == 2
     assert "differ in size (8x6 and 10x6)" in capsys.readouterr().err
+
+
+def test_dev_replays_replays_a_bag_and_compares_two_replays_pair_by_pair(tmp_path):
+    """``dev_replays.py replay`` runs nocal odometry on a bag of the folder; ``compare`` reads both replays'
+    reports and trajectories: a copy whose published poses from frame 12 on are turned by 1 deg about the
+    world's z axis has, from pair 12 on, the same rotation errors (the turn is common to both poses of each
+    pair) but pair 11 gains the degree; the figures of the report itself are passed through."""
+    from nocal_ros.data.importers.common import read_tum_poses
+    from nocal_ros.data.synthetic import render_sequence
+    from nocal_ros.geometry import so3_exp
+
+    bags = tmp_path / "bags"
+    bags.mkdir()
+    write_sequence(render_sequence(CAMERA, 24, seed=5, split="test"), bags / "heldout_160")
+    script = [sys.executable, str(SCRIPTS / "dev_replays.py")]
+    run = subprocess.run([*script, "replay", str(bags), str(tmp_path / "a"), "--bags", "heldout_160", "kitti_clip"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    assert "heldout_160: done" in run.stdout and "kitti_clip: no bag" in run.stdout
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    trajectory = tmp_path / "b" / "heldout_160" / "trajectory.tum"
+    stamps, poses = read_tum_poses(trajectory)
+    turned = poses.copy()
+    turned[12:] = make_transform(so3_exp(np.array([0.0, 0.0, np.radians(1.0)])), np.zeros(3)) @ poses[12:]
+    lines = [line for line in trajectory.read_text().splitlines() if line.strip()]
+    from scipy.spatial.transform import Rotation
+    rewritten = [" ".join([line.split()[0], *(f"{v:.9f}" for v in (*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_quat()))])
+                 for line, T in zip(lines, turned)]
+    trajectory.write_text("\n".join(rewritten) + "\n")
+
+    dev = load_script("dev_replays")
+    truth = read_poses_at(bags / "heldout_160", stamps)
+    a = dev.replay_figures(tmp_path / "a" / "heldout_160", bags / "heldout_160", 12)
+    b = dev.replay_figures(tmp_path / "b" / "heldout_160", bags / "heldout_160", 12)
+    report = json.loads((tmp_path / "a" / "heldout_160" / "report.json").read_text())
+    assert a["focal %"] == report["calibration"]["focal_error_percent"] and a["rotation"] == report["rpe"]["rotation_deg"]["rmse"]
+    # From pair 12 on, the closed form of each pair's error; pair 11 moved by the degree.
+    expected = [np.degrees(np.linalg.norm(so3_log((truth[k, :3, :3].T @ truth[k + 1, :3, :3]).T @ poses[k, :3, :3].T @ poses[k + 1, :3, :3])))
+                for k in range(12, len(poses) - 1)]
+    assert a["rotation from 12"] == pytest.approx(np.sqrt(np.mean(np.square(expected))), abs=1e-6)
+    assert b["rotation from 12"] == pytest.approx(a["rotation from 12"], abs=1e-4)  # the file's 9 decimals
+    whole_a = dev.replay_figures(tmp_path / "a" / "heldout_160", bags / "heldout_160", 0)
+    whole_b = dev.replay_figures(tmp_path / "b" / "heldout_160", bags / "heldout_160", 0)
+    pair_11 = np.sqrt((len(poses) - 1) * (whole_b["rotation from 0"] ** 2 - whole_a["rotation from 0"] ** 2))
+    assert 0.5 < pair_11 < 1.5  # the degree, give or take that pair's own error
+    rows = dev.compare_table({"heldout_160": whole_a}, {"heldout_160": whole_b})
+    assert rows[-1].split("|")[list(whole_a).index("rotation from 0") + 2].strip() == "0 / 1"
+    compared = subprocess.run([*script, "compare", str(tmp_path / "a"), str(tmp_path / "b"), "--bags-from", str(bags),
+                               "--from-pair", "12"], capture_output=True, text=True, timeout=120)
+    assert compared.returncode == 0 and "| heldout_160 |" in compared.stdout and "| median |" in compared.stdout
+
+
+def read_poses_at(bag, stamps):
+    from nocal_ros.data.bags import read_poses
+
+    return read_poses(bag, "/ground_truth/pose", stamps)
