@@ -262,10 +262,12 @@ def test_dev_replays_replays_a_bag_and_compares_two_replays_pair_by_pair(tmp_pat
     a = dev.replay_figures(tmp_path / "a" / "heldout_160", bags / "heldout_160", 12)
     b = dev.replay_figures(tmp_path / "b" / "heldout_160", bags / "heldout_160", 12)
     report = json.loads((tmp_path / "a" / "heldout_160" / "report.json").read_text())
-    assert a["focal %"] == report["calibration"]["focal_error_percent"] and a["rotation"] == report["rpe"]["rotation_deg"]["rmse"]
+    assert a["focal %"] == report["calibration"]["focal_error_percent"]
+    assert a["rotation"] == report["rpe"]["rotation_deg"]["rmse"]
     # From pair 12 on, the closed form of each pair's error; pair 11 moved by the degree.
-    expected = [np.degrees(np.linalg.norm(so3_log((truth[k, :3, :3].T @ truth[k + 1, :3, :3]).T @ poses[k, :3, :3].T @ poses[k + 1, :3, :3])))
-                for k in range(12, len(poses) - 1)]
+    steps = [(truth[k, :3, :3].T @ truth[k + 1, :3, :3], poses[k, :3, :3].T @ poses[k + 1, :3, :3])
+             for k in range(12, len(poses) - 1)]
+    expected = [np.degrees(np.linalg.norm(so3_log(true.T @ estimated))) for true, estimated in steps]
     assert a["rotation from 12"] == pytest.approx(np.sqrt(np.mean(np.square(expected))), abs=1e-6)
     assert b["rotation from 12"] == pytest.approx(a["rotation from 12"], abs=1e-4)  # the file's 9 decimals
     whole_a = dev.replay_figures(tmp_path / "a" / "heldout_160", bags / "heldout_160", 0)
