@@ -285,3 +285,22 @@ def read_poses_at(bag, stamps):
     from nocal_ros.data.bags import read_poses
 
     return read_poses(bag, "/ground_truth/pose", stamps)
+
+
+def test_dev_replays_runs_the_checkout_it_is_given_even_from_the_repository_root(tmp_path):
+    """``replay --checkout`` must run that checkout's nocal_ros, not the repository's: ``python -m`` puts the
+    working directory first on ``sys.path``, so run from the repository's root (as CI runs the tests) the
+    root's package would win. A stand-in checkout whose ``nocal_ros.cli`` only leaves a mark shows which ran."""
+    checkout = tmp_path / "checkout" / "nocal_ros"
+    checkout.mkdir(parents=True)
+    (checkout / "__init__.py").write_text("")
+    (checkout / "cli.py").write_text(
+        "import sys\nfrom pathlib import Path\n"
+        "out = Path(sys.argv[sys.argv.index('--out') + 1])\nout.mkdir(parents=True)\n"
+        "(out / 'ran').write_text(str(Path(__file__).resolve()))\n")
+    (tmp_path / "bags" / "heldout_160").mkdir(parents=True)
+    run = subprocess.run([sys.executable, str(SCRIPTS / "dev_replays.py"), "replay", str(tmp_path / "bags"),
+                          str(tmp_path / "out"), "--checkout", str(tmp_path / "checkout"), "--bags", "heldout_160"],
+                         capture_output=True, text=True, timeout=120, cwd=SCRIPTS.parents[1])
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert (tmp_path / "out" / "heldout_160" / "ran").read_text() == str((checkout / "cli.py").resolve())

@@ -88,14 +88,17 @@ def make_bags(directory: Path) -> None:
 
 
 def _nocal(arguments: list[str], env: dict[str, str] | None = None, log: Path | None = None) -> int:
+    """``python -m nocal_ros.cli ARGUMENTS`` run from the log's folder: ``-m`` puts the working directory
+    first on ``sys.path``, and from the repository's root its ``nocal_ros`` would shadow the checkout's."""
     command = [sys.executable, "-m", "nocal_ros.cli", *arguments]
     if log is None:
         return subprocess.run(command, env=env, check=True).returncode
     with open(log, "w") as stream:
-        return subprocess.run(command, env=env, stdout=stream, stderr=subprocess.STDOUT).returncode
+        return subprocess.run(command, env=env, cwd=log.parent, stdout=stream, stderr=subprocess.STDOUT).returncode
 
 
 def replay(bags: Path, out: Path, names: list[str], checkout: Path | None, jobs: int) -> int:
+    bags, out = bags.resolve(), out.resolve()
     env = dict(os.environ)
     if checkout is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(checkout.resolve()), *filter(None, [env.get("PYTHONPATH")])])
