@@ -112,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print(f"{prefix}: error: out of memory (try a smaller --max-frames, batch or image size)", file=sys.stderr)
         return EXIT_USER_ERROR
+    except ModuleNotFoundError as error:
+        if not error.name or error.name.split(".")[0] == "nocal_ros":
+            return _report_bug(prefix)  # a module of our own missing is a broken install or a bug
+        # Another package missing is the environment's: a replay run by a Python without the requirements.
+        print(f"{prefix}: error: the Python package '{error.name}' is not installed for {sys.executable} "
+              f"(install the requirements: pip install -r requirements.txt -e .)", file=sys.stderr)
+        return EXIT_USER_ERROR
     except OSError as error:
         if error.errno not in USER_ERRNOS:
             return _report_bug(prefix)

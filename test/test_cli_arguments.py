@@ -146,7 +146,16 @@ def test_enospc_names_the_file(tmp_path, monkeypatch, capsys):
     assert capsys.readouterr().err.strip() == "nocal synth: error: /data/out.mcap: No space left on device"
 
 
+def test_a_missing_package_says_which_and_how_to_install_it(tmp_path, monkeypatch, capsys):
+    _synth_raising(monkeypatch, ModuleNotFoundError("No module named 'torch'", name="torch"))
+    assert main(["synth", "--out", str(tmp_path / "x")]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("nocal synth: error: the Python package 'torch' is not installed for ") and "pip install" in err
+
+
 @pytest.mark.parametrize("error", [ZeroDivisionError("division by zero"), KeyError("stage"),
+                                   ModuleNotFoundError("No module named 'nocal_ros.gone'", name="nocal_ros.gone"),
                                    OSError(errno.EBADF, "Bad file descriptor")])
 def test_bugs_print_the_traceback_and_ask_for_a_report(tmp_path, monkeypatch, capsys, error):
     _synth_raising(monkeypatch, error)
