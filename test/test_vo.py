@@ -713,3 +713,36 @@ def test_later_camera_initialisations_rebuild_a_map_placed_through_a_short_guess
         assert [r.tracking for r in results].count("ok") >= 50
     print("focal error after 60 frames, without and with the rebuild:", error)
     assert error[True] < 0.05 and error[False] > max(0.04, 3 * error[True])
+
+
+def test_robust_pnp_in_tracking_refines_each_pose_through_a_known_camera_and_tracks_as_well(sequence, monkeypatch):
+    """``TrackingSettings.robust_pnp`` (off by default: docs/RESULTS.md) asks PnP for the Cauchy refinement
+    on every tracked frame once the camera is solved (a given calibration here), and the replay tracks
+    as it does without: every frame after the map's start posed, the rotation per pair within the same
+    bound as least squares' (measured 0.048 and 0.053 deg per pair on these 40 frames)."""
+    import nocal_ros.odometry.tracking as tracking_module
+    from nocal_ros.evaluation import relative_pose_error
+    from nocal_ros.odometry.tracking import TrackingSettings
+
+    solve, robust_calls = tracking_module.solve_pnp, []
+
+    def counting(*args, **kwargs):
+        robust_calls.append(bool(kwargs.get("robust")))
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(tracking_module, "solve_pnp", counting)
+    rotation = {}
+    for robust in (False, True):
+        robust_calls.clear()
+        estimator = OdometryEstimator(calibration=CAMERA, synchronous_mapping=True,
+                                      settings=TrackingSettings(robust_pnp=robust))
+        results = run(estimator, sequence.images[:40], sequence.stamps_ns[:40])
+        estimator.close()
+        tracking = [r.tracking for r in results]
+        start = tracking.index("ok")
+        assert tracking[start:] == ["ok"] * (40 - start)
+        assert any(robust_calls) == robust and (not robust or sum(robust_calls) >= 40 - start)
+        poses = np.array([r.T_odom_cam for r in results])[start:]
+        rotation[robust] = relative_pose_error(poses, sequence.ground_truth[start:40])["rotation_deg"]["rmse"]
+    print("rotation per pair (deg), least squares and robust:", rotation)
+    assert rotation[True] < 0.1 and rotation[False] < 0.1
