@@ -234,6 +234,8 @@ def test_dev_replays_replays_a_bag_and_compares_two_replays_pair_by_pair(tmp_pat
     reports and trajectories: a copy whose published poses from frame 12 on are turned by 1 deg about the
     world's z axis has, from pair 12 on, the same rotation errors (the turn is common to both poses of each
     pair) but pair 11 gains the degree; the figures of the report itself are passed through."""
+    from nocal_ros.commands.odometry import write_tum
+    from nocal_ros.data.bags import read_poses
     from nocal_ros.data.importers.common import read_tum_poses
     from nocal_ros.data.synthetic import render_sequence
     from nocal_ros.geometry import so3_exp
@@ -251,14 +253,10 @@ def test_dev_replays_replays_a_bag_and_compares_two_replays_pair_by_pair(tmp_pat
     stamps, poses = read_tum_poses(trajectory)
     turned = poses.copy()
     turned[12:] = make_transform(so3_exp(np.array([0.0, 0.0, np.radians(1.0)])), np.zeros(3)) @ poses[12:]
-    lines = [line for line in trajectory.read_text().splitlines() if line.strip()]
-    from scipy.spatial.transform import Rotation
-    rewritten = [" ".join([line.split()[0], *(f"{v:.9f}" for v in (*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_quat()))])
-                 for line, T in zip(lines, turned)]
-    trajectory.write_text("\n".join(rewritten) + "\n")
+    write_tum(trajectory, stamps, turned)
 
     dev = load_script("dev_replays")
-    truth = read_poses_at(bags / "heldout_160", stamps)
+    truth = read_poses(bags / "heldout_160", "/ground_truth/pose", stamps)
     a = dev.replay_figures(tmp_path / "a" / "heldout_160", bags / "heldout_160", 12)
     b = dev.replay_figures(tmp_path / "b" / "heldout_160", bags / "heldout_160", 12)
     report = json.loads((tmp_path / "a" / "heldout_160" / "report.json").read_text())
@@ -279,12 +277,6 @@ def test_dev_replays_replays_a_bag_and_compares_two_replays_pair_by_pair(tmp_pat
     compared = subprocess.run([*script, "compare", str(tmp_path / "a"), str(tmp_path / "b"), "--bags-from", str(bags),
                                "--from-pair", "12"], capture_output=True, text=True, timeout=120)
     assert compared.returncode == 0 and "| heldout_160 |" in compared.stdout and "| median |" in compared.stdout
-
-
-def read_poses_at(bag, stamps):
-    from nocal_ros.data.bags import read_poses
-
-    return read_poses(bag, "/ground_truth/pose", stamps)
 
 
 def test_dev_replays_runs_the_checkout_it_is_given_even_from_the_repository_root(tmp_path):

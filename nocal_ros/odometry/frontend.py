@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from nocal_ros.geometry import so3_exp
+from nocal_ros.geometry import make_transform, so3_exp
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
@@ -436,24 +436,22 @@ def solve_pnp(points_w: np.ndarray, normalised: np.ndarray, threshold: float, *,
         rvec, tvec = _opencv_pose(best)
         rvec, tvec = cv2.solvePnPRefineLM(object_points[inliers], image_points[inliers], K, None, rvec, tvec)
         best = _pose_matrix(rvec, tvec)
-    whitening_all = None if whitening is None else np.asarray(whitening, dtype=np.float64).reshape(-1, 2, 2)[index]
     errors = reprojection_errors(best, object_points, image_points)
     inliers = errors < threshold
     if inliers.sum() < min_inliers:
         return None
+    weights = None if whitening is None else np.asarray(whitening, dtype=np.float64).reshape(-1, 2, 2)[index[inliers]]
+    if weights is not None and not _usable_whitening(weights):
+        weights = None  # a ray at a lens's fold has no noise model: every point alike, as without one
     if robust:
         # The inliers stay the least-squares fit's: the points the robust pose moves past the threshold
         # are the ones it weighs least, and classed as outliers here they would leave the tracker for good.
-        best = robust_pose_refinement(best, object_points[inliers], image_points[inliers],
-                                      None if whitening_all is None else whitening_all[inliers],
+        best = robust_pose_refinement(best, object_points[inliers], image_points[inliers], weights,
                                       ROBUST_MIN_NOISE_SHARE * threshold)
     mask = np.zeros(len(points_w), dtype=bool)
     mask[index[inliers]] = True
     if not covariance:
         return PnPResult(best, mask, None)
-    weights = None if whitening_all is None else whitening_all[inliers]
-    if weights is not None and not _usable_whitening(weights):
-        weights = None  # a ray at a lens's fold has no noise model: every point alike, as without one
     projected, J = _pose_jacobians(best, object_points[inliers])
     residuals = projected - image_points[inliers]
     if weights is not None:  # the residuals as image noise
@@ -525,10 +523,7 @@ def robust_pose_refinement(T_w_c: np.ndarray, points_w: np.ndarray, normalised: 
         xi, shifted = xi_new, shifted_new
         if converged:
             break
-    update = np.eye(4)
-    update[:3, :3] = so3_exp(xi[3:])
-    update[:3, 3] = xi[:3]
-    return T_w_c @ update
+    return T_w_c @ make_transform(so3_exp(xi[3:]), xi[:3])
 
 
 def ray_whitening(calibration: CameraCalibration, undistorted: np.ndarray) -> np.ndarray | None:
