@@ -18,7 +18,7 @@ from nocal_ros.odometry.frontend import (
 )
 from nocal_ros.odometry.initializer import rotation_ransac, two_view_map, unit_rays
 from nocal_ros.odometry.map import Keyframe, parallax_deg, triangulate
-from nocal_ros.odometry.scale import fit_arm_scale, umeyama
+from nocal_ros.odometry.scale import fit_arm_scale, fit_ground_plane, fit_ground_scale, umeyama
 
 CAMERA = CameraCalibration(640, 480, np.array([[520.0, 0, 330.0], [0, 515.0, 236.0], [0, 0, 1]]),
                            np.array([-0.25, 0.08, 0.001, -0.0005, 0.0]), "plumb_bob")
@@ -235,6 +235,64 @@ def test_arm_scale_is_the_similarity_fit_and_needs_three_keyframes():
     assert fit_arm_scale(np.zeros((4, 3)), arm) is None  # a map that has not moved has no scale
     fitted = fit_arm_scale(map_positions, arm)
     assert fitted.source == "arm" and fitted.scale == pytest.approx(0.3, rel=1e-12) and fitted.samples == 4
+
+
+def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False) -> dict:
+    """A drive down a street, world z up: cameras 1.65 m above a road (z = 0), pitched 3 deg down, facing
+    +y; building fronts at x = +-7 m from 0.5 m up; with ``ceiling``, a denser plane 5 m up (an overpass). Returned in
+    a map frame that is the world moved by a known similarity (``scale`` metres per map unit), as a
+    monocular map holds it."""
+    rng = np.random.default_rng(seed)
+    pitch = np.radians(3.0)
+    # optical axes in the world: x right, y down, z forward (+y), turned about x by the pitch
+    level = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+    R_w_c = so3_exp(np.array([-pitch, 0, 0])) @ level
+    centres = np.stack([np.zeros(12), np.linspace(0, 11, 12), np.full(12, 1.65)], axis=1)
+    road = np.stack([rng.uniform(-4, 4, 150), rng.uniform(5, 40, 150), np.zeros(150)], axis=1)
+    walls = np.stack([rng.choice([-7.0, 7.0], 250), rng.uniform(0, 45, 250), rng.uniform(0.5, 9, 250)], axis=1)
+    points = [road, walls]
+    if ceiling:
+        points.append(np.stack([rng.uniform(-6, 6, 300), rng.uniform(5, 30, 300), np.full(300, 5.0)], axis=1))
+    points = np.concatenate(points) + rng.normal(0, noise_m, (sum(len(p) for p in points), 3))
+    scale, R, t = 0.37, so3_exp(np.array([0.4, -1.1, 0.3])), np.array([2.0, -1.0, 5.0])  # world = scale R map + t
+    to_map = lambda x: (x - t) @ R / scale  # noqa: E731
+    down = R.T @ (R_w_c @ np.array([0.0, 1.0, 0.0]))
+    return dict(points=to_map(points), centres=to_map(centres), down=down, scale=scale, road_normal=R.T @ [0, 0, -1.0],
+                world=dict(road=road, centres=centres, down=R_w_c @ np.array([0.0, 1.0, 0.0])))
+
+
+def test_ground_scale_is_the_camera_height_over_its_height_above_the_road_in_the_map():
+    exact = street()
+    plane = fit_ground_plane(exact["points"], exact["centres"], exact["down"])
+    np.testing.assert_allclose(plane.normal, exact["road_normal"], atol=1e-9)
+    np.testing.assert_allclose(plane.heights(exact["centres"]) * exact["scale"], 1.65, rtol=1e-9)
+    fitted = fit_ground_scale(exact["points"], exact["centres"], exact["down"], 1.65)
+    assert fitted.source == "ground" and fitted.scale == pytest.approx(exact["scale"], rel=1e-9)
+    # the road's landmarks seen at least 3 deg below the cameras' horizontal, counted in the world
+    world = exact["world"]
+    offsets = world["road"][:, None, :] - world["centres"][None]
+    nearest = offsets[np.arange(len(offsets)), np.argmin(np.linalg.norm(offsets, axis=2), axis=1)]
+    seen_below = nearest @ world["down"] > np.sin(np.radians(3.0)) * np.linalg.norm(nearest, axis=1)
+    assert fitted.samples == plane.inliers == seen_below.sum() > 50
+    # 2 cm of noise on every landmark: within 1 % (the road's 150 landmarks average it out)
+    noisy = street(noise_m=0.02, seed=1)
+    assert fit_ground_scale(noisy["points"], noisy["centres"], noisy["down"], 1.65).scale == pytest.approx(noisy["scale"], rel=0.01)
+
+
+def test_ground_plane_is_below_the_cameras_and_absent_where_the_map_shows_none():
+    overpass = street(noise_m=0.01, ceiling=True)  # more landmarks above than on the road
+    fitted = fit_ground_scale(overpass["points"], overpass["centres"], overpass["down"], 1.65)
+    assert fitted.scale == pytest.approx(overpass["scale"], rel=0.01)
+    walls_only = street()
+    walls_only["points"] = walls_only["points"][150:]
+    assert fit_ground_plane(walls_only["points"], walls_only["centres"], walls_only["down"]) is None
+    # a plane that almost meets one of the cameras is not the floor they move over
+    low = street()
+    low["centres"][5] += 0.9 * 1.65 / low["scale"] * low["road_normal"]  # 0.17 m above the road
+    assert fit_ground_plane(low["points"], low["centres"], low["down"]) is None
+    for height in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="camera height"):
+            fit_ground_scale(overpass["points"], overpass["centres"], overpass["down"], height)
 
 
 def shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:

@@ -1,6 +1,7 @@
-"""Metric scale for monocular VO: from arm poses by a similarity fit, else from the pose head.
+"""Metric scale for monocular VO: from arm poses by a similarity fit, from the ground plane and a known
+camera height, else from the pose head.
 
-A monocular map is correct up to one scale factor ``s`` (metres per map unit). Two sources measure it:
+A monocular map is correct up to one scale factor ``s`` (metres per map unit). Three sources measure it:
 
 * **Arm poses** (a bag topic, or TF base -> tool on a live robot): the camera positions the arm reports
   at keyframes, against the same keyframes' map positions. A similarity (Umeyama) fit gives ``s``; it
@@ -12,7 +13,15 @@ A monocular map is correct up to one scale factor ``s`` (metres per map unit). T
   pose head pairs did not make it more accurate (measured on five held-out bags: its error is a bias
   per camera and scene, x1.3-4.4 there; APE Sim(3) 4.6 cm mean when kept, 7.8 cm when refined).
 
-Arm poses win whenever a fit is possible; ``source`` says which was used.
+* **The ground plane** (a robot whose camera's height above the floor or road is known, as KITTI's
+  1.65 m or a ground robot's ``base_footprint -> camera`` transform gives it): the map's landmarks
+  below the cameras are searched by RANSAC for a plane whose normal is near the expected down
+  direction (:func:`fit_ground_plane`); the cameras' median height above it, in map units, against the
+  known height gives ``s`` (:func:`fit_ground_scale`). Measured on the final maps of the held-out bags
+  with each keyframe's true height: 0.999x (640x480), 0.980x (160x120) and 0.974x (r160_201) of the
+  true scale, where the pose head's was off by x0.2-4.6.
+
+Arm poses win whenever a fit is possible, then the ground plane; ``source`` says which was used.
 
 Live, the fit moves the map's scale but not its shape, which drifts between arm poses. At the end of a
 replay (:meth:`~nocal_ros.odometry.estimator.OdometryEstimator.final_trajectory`) a map with arm poses at
@@ -56,7 +65,7 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> 
 
 @dataclass
 class ScaleEstimate:
-    """Metres per map unit and where it came from (``"arm"``, ``"pose_head"`` or ``"none"``)."""
+    """Metres per map unit and where it came from (``"arm"``, ``"ground"``, ``"pose_head"`` or ``"none"``)."""
 
     scale: float = 1.0
     source: str = "none"
@@ -84,3 +93,131 @@ def fit_arm_scale(map_positions: np.ndarray, arm_positions: np.ndarray) -> Scale
     if similarity is None:
         return None
     return ScaleEstimate(similarity[0], "arm", len(np.asarray(map_positions).reshape(-1, 3)))
+
+
+#: The ground's normal is searched within this angle of the expected down direction: a camera looking
+#: ahead, pitched or rolled up to this much against the ground (KITTI's: about 1 deg; the rendered arm's:
+#: about 11 deg on average, measured).
+GROUND_MAX_TILT_DEG = 20.0
+#: A ground candidate is seen at least this far below the horizontal from its nearest camera: the ground
+#: near the cameras, whose landmarks are triangulated best (a plane through distant landmarks just below
+#: the horizon took KITTI's scale 25 % off, measured).
+GROUND_MIN_DEPRESSION_DEG = 3.0
+#: Every camera is at least this share of the cameras' median height above the ground: a plane that nearly
+#: meets a camera is not the floor it moves over (one through landmarks just under the moving camera
+#: took r640_302's scale x9, measured; the floor's share is 0.86 and KITTI's road's 0.96 there).
+MIN_HEIGHT_SHARE = 0.5
+#: Fewest landmarks on the ground plane for a scale from it.
+MIN_GROUND_POINTS = 30
+#: Half the RANSAC inlier band, as a share of the candidate landmarks' median distance from their nearest
+#: camera (a landmark's triangulation error grows with its distance).
+GROUND_BAND_SHARE = 0.015
+#: RANSAC plane hypotheses drawn (seeded: a replay repeats).
+GROUND_HYPOTHESES = 400
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """A plane ``normal @ x == offset`` in the map frame; ``normal`` (unit) points from the cameras to it."""
+
+    normal: np.ndarray
+    offset: float
+    inliers: int
+    #: The median angle below the horizontal at which its landmarks are seen from their nearest camera.
+    depression_deg: float = 90.0
+
+    def heights(self, centres: np.ndarray) -> np.ndarray:
+        """Distances of camera centres ``(N, 3)`` above the plane (positive on the cameras' side)."""
+        return self.offset - np.asarray(centres, dtype=np.float64).reshape(-1, 3) @ self.normal
+
+
+def _plane_through(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane ``(unit normal, offset)`` through ``(N, 3)`` points (N >= 3)."""
+    centre = points.mean(0)
+    normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
+    return normal, float(normal @ centre)
+
+
+def fit_ground_plane(points: np.ndarray, centres: np.ndarray, down: np.ndarray, *,
+                     max_tilt_deg: float = GROUND_MAX_TILT_DEG, min_depression_deg: float = GROUND_MIN_DEPRESSION_DEG,
+                     min_points: int = MIN_GROUND_POINTS,
+                     band_share: float = GROUND_BAND_SHARE, hypotheses: int = GROUND_HYPOTHESES,
+                     seed: int = 0) -> GroundPlane | None:
+    """The ground plane among a map's landmarks, or None where there is none to trust.
+
+    Args:
+        points: ``(N, 3)`` landmark positions in the map frame.
+        centres: ``(K, 3)`` the cameras' centres in the map frame.
+        down: ``(3,)`` the expected down direction in the map frame (the cameras' mean).
+        max_tilt_deg: largest angle between the plane's normal and ``down``.
+        min_depression_deg: least angle below the horizontal (against ``down``) at which a candidate is seen
+            from its nearest camera.
+        min_points: fewest landmarks within the plane's band.
+        band_share: half the inlier band, as a share of the candidates' median distance from the cameras.
+        hypotheses: RANSAC hypotheses (three landmarks each), drawn with ``seed``.
+
+    Only landmarks seen below the horizontal from their nearest camera are candidates, so a ceiling is
+    never taken for the floor. The plane with most landmarks in its band wins (a floor or road outnumbers
+    the tops of objects on it), is refitted to them by least squares, and must lie below every camera by
+    at least :data:`MIN_HEIGHT_SHARE` of their median height.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    down = np.asarray(down, dtype=np.float64).reshape(3)
+    if len(centres) == 0 or len(points) < max(3, min_points) or not np.linalg.norm(down) > 0:
+        return None
+    down = down / np.linalg.norm(down)
+    from scipy.spatial import cKDTree
+
+    # A tree, not a (landmarks, cameras) table: a long map's would take gigabytes.
+    relative = points - centres[cKDTree(centres).query(points)[1]]
+    distances = np.linalg.norm(relative, axis=1)
+    below = relative @ down > np.sin(np.radians(min_depression_deg)) * distances
+    candidates = points[below]
+    if len(candidates) < min_points:
+        return None
+    band = band_share * float(np.median(distances[below]))
+    rng = np.random.default_rng(seed)
+    triples = candidates[rng.integers(0, len(candidates), (hypotheses, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    normals = normals / np.where(lengths > 0, lengths, 1.0)[:, None]
+    normals *= np.where(normals @ down < 0, -1.0, 1.0)[:, None]
+    cos_tilt = np.cos(np.radians(max_tilt_deg))
+    usable = (lengths > 0) & (normals @ down >= cos_tilt)
+    if not usable.any():
+        return None
+    normals, anchors = normals[usable], triples[usable, 0]
+    plane_offsets = (normals * anchors).sum(1)
+    counts = (np.abs(candidates @ normals.T - plane_offsets) < band).sum(0)
+    best = int(np.argmax(counts))
+    normal, offset = normals[best], float(plane_offsets[best])
+    for _ in range(2):  # least squares on the band, then on the refitted plane's band
+        inside = np.abs(candidates @ normal - offset) < band
+        if inside.sum() < min_points:
+            return None
+        normal, offset = _plane_through(candidates[inside])
+        if normal @ down < 0:
+            normal, offset = -normal, -offset
+    inside = np.abs(candidates @ normal - offset) < band
+    inliers = int(inside.sum())
+    sines = (relative[below] @ down / distances[below])[inside]
+    plane = GroundPlane(normal, offset, inliers, float(np.degrees(np.arcsin(np.median(sines)))) if inliers else 0.0)
+    heights = plane.heights(centres)
+    if inliers < min_points or normal @ down < cos_tilt or not (heights > MIN_HEIGHT_SHARE * np.median(heights)).all():
+        return None
+    return plane
+
+
+def fit_ground_scale(points: np.ndarray, centres: np.ndarray, down: np.ndarray, camera_height: float,
+                     **plane_settings) -> ScaleEstimate | None:
+    """Metres per map unit from the ground plane (:func:`fit_ground_plane`) and the camera's known
+    height above it (m): the height over the cameras' median height in map units. None where no plane
+    is found. ``samples`` is the plane's landmark count."""
+    if not (np.isfinite(camera_height) and camera_height > 0):
+        raise ValueError(f"the camera height must be a positive number of metres, got {camera_height!r}")
+    plane = fit_ground_plane(points, centres, down, **plane_settings)
+    if plane is None:
+        return None
+    scale = float(camera_height / np.median(plane.heights(centres)))
+    return ScaleEstimate(scale, "ground", plane.inliers) if np.isfinite(scale) and scale > 0 else None
