@@ -27,6 +27,8 @@ BAD_ARGUMENTS = [
     (["odometry", "BAG", "--out", "OUT", "--frame-period", "0"], "--frame-period"),
     (["odometry", "BAG", "--out", "OUT", "--frame-period", "-0.1"], "--frame-period"),
     (["odometry", "BAG", "--out", "OUT", "--max-frames", "-1"], "--max-frames"),
+    (["odometry", "BAG", "--out", "OUT", "--camera-height", "0"], "--camera-height"),
+    (["odometry", "BAG", "--out", "OUT", "--camera-height", "nan"], "--camera-height"),
     (["odometry", "BAG", "--out", "OUT", "--base-to-camera", "0", "0", "0", "0", "0", "0", "nan"], "--base-to-camera"),
     (["synth", "--out", "OUT", "--fps", "nan"], "--fps"),
     (["synth", "--out", "OUT", "--speed", "inf"], "--speed"),
@@ -77,8 +79,9 @@ def test_the_trainer_nodes_settings_refuse_the_same_values(tmp_path):
 def test_good_values_still_parse():
     parser = cli.build_parser("odometry")
     args = parser.parse_args(["odometry", "BAG", "--out", "O", "--threads", "0", "--device", "cpu",
-                              "--frame-period", "0.05", "--max-frames", "3", "--base-to-camera", *"0 0 0 0 0 0 1".split()])
-    assert (args.threads, args.device, args.frame_period, args.max_frames) == (0, "cpu", 0.05, 3)
+                              "--frame-period", "0.05", "--max-frames", "3", "--base-to-camera", *"0 0 0 0 0 0 1".split(),
+                              "--camera-height", "1.65"])
+    assert (args.threads, args.device, args.frame_period, args.max_frames, args.camera_height) == (0, "cpu", 0.05, 3, 1.65)
     args = cli.build_parser("synth").parse_args(["synth", "--out", "O", "--size", "32x24", "--speed", "0", "--fps", "30"])
     assert args.size == (32, 24) and args.speed == 0.0 and args.fps == 30.0
 

@@ -80,6 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the online camera's lens model (auto: plumb_bob)")
     parser.add_argument("--arm-topic", default="/arm/pose",
                         help="arm poses of the camera (PoseStamped) that make the scale metric, when the bag has them; '' to ignore")
+    parser.add_argument("--camera-height", type=arg.positive_float, default=None, metavar="M",
+                        help="the camera's height above the ground (m; KITTI: 1.65): where no arm poses fit, the "
+                             "scale comes from the ground plane in the map instead of the pose head")
     parser.add_argument("--no-final", action="store_true",
                         help="skip trajectory_final.tum and calibration_final.yaml (the replay then keeps no "
                              "per-frame tracks: about 7 KB per frame, 0.7 GB per hour of a 30 Hz camera at 300 tracks)")
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     estimator = OdometryEstimator(
         args.model or None, args.device, T_base_cam=T_base_cam, frame_period_s=args.frame_period,
         distortion_model=args.distortion_model, method=args.method, calibration=calibration,
-        synchronous_mapping=True, record_trajectory=not args.no_final,
+        synchronous_mapping=True, record_trajectory=not args.no_final, camera_height=args.camera_height,
     )
     result = replay_bag(
         args.bag, args.out, estimator,
@@ -539,6 +542,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report["final_trajectory"]["posed"] = {how: int(sum(h == how for h in final[1])) for how in sorted(set(final[1]))}
         report["final_trajectory"]["seconds"] = float(final[3])  # the whole-map solves and the frames' PnP
         report["final_trajectory"]["observations_found"] = int(final[4])  # by searching the keyframes
+        sources = list(getattr(estimator, "final_scale_sources", {}).values())
+        if sources:  # what made each final map metric: arm, ground, or the live scale it was published with
+            report["final_trajectory"]["scale_source"] = {source: sources.count(source) for source in sorted(set(sources))}
         if truth.calibration is not None:
             report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
     covariances = replay.extras.get("step_rotation_covariances")

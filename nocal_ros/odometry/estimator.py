@@ -101,7 +101,7 @@ from nocal_ros.odometry.calibration import (
 )
 from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, focal_step_covariance, propagate_covariance
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
-from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale, fit_arm_similarity
+from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale, fit_arm_similarity, fit_ground_scale
 from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFrame
 
 if TYPE_CHECKING:
@@ -119,6 +119,10 @@ POSE_HISTORY = 256
 #: The most recent keyframes with arm poses that the scale is fitted to: a monocular map's scale drifts
 #: (and moves while the online camera converges), so the newest part of the map is the one to match.
 ARM_FIT_KEYFRAMES = 10
+#: The live ground-plane scale is fitted to the newest keyframes' landmarks (a road is a plane locally), once
+#: the map has this many keyframes.
+GROUND_FIT_KEYFRAMES = 10
+MIN_GROUND_KEYFRAMES = 3
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
 ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
@@ -227,6 +231,11 @@ class OdometryEstimator:
         settings: VO thresholds (:class:`~nocal_ros.odometry.tracking.TrackingSettings`).
         record_trajectory: keep what :meth:`final_trajectory` needs (every frame's tracks: for replays,
             not for a node that runs for hours).
+        camera_height: the camera's height above the ground (m), where it moves over a floor or road at a
+            known height (KITTI: 1.65): where no arm poses fit, the scale comes from the ground plane in
+            the map (:func:`~nocal_ros.odometry.scale.fit_ground_scale`) instead of the pose head. The
+            ground's normal is expected near ``base_frame``'s -z (REP 103) through ``T_base_cam``, or near
+            the image's down direction where ``T_base_cam`` is the identity (the camera is the base).
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -247,6 +256,7 @@ class OdometryEstimator:
         synchronous_mapping: bool = False,
         settings: TrackingSettings | None = None,
         record_trajectory: bool = False,
+        camera_height: float | None = None,
     ) -> None:
         if method not in METHODS:
             raise NocalError(f"odometry method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -268,6 +278,12 @@ class OdometryEstimator:
         self.synchronous_mapping = bool(synchronous_mapping)
         self.record_trajectory = bool(record_trajectory)
         self.settings = settings or TrackingSettings()
+        if camera_height is not None and not (np.isfinite(camera_height) and camera_height > 0):
+            raise NocalError(f"the camera height must be a positive number of metres, got {camera_height!r}")
+        self.camera_height = None if camera_height is None else float(camera_height)
+        #: What made each map of :meth:`final_trajectory` metric (map id -> ``"arm"``, ``"ground"``, or the
+        #: live source of its last published scale).
+        self.final_scale_sources: dict[int, str] = {}
         self.counters = OdometryCounters()
         #: Observations :meth:`final_trajectory` found by searching keyframes for landmarks they never tracked.
         self.final_observations_found = 0
@@ -366,6 +382,7 @@ class OdometryEstimator:
             # (frame, stamp, published T_odom_cam, VO map id or None) per frame, for final_trajectory
             self._trajectory_log: list[tuple[int, int, np.ndarray, int | None]] = []
             self._map_scales: dict[int, float] = {}  # map id -> the last scale its poses were published with
+            self._map_scale_sources: dict[int, str] = {}  # map id -> where that scale came from
             self._previous_focal_std = 0.0  # the online camera's relative focal std when the last frame was published
             if self._vo is not None:
                 self._vo.reset()
@@ -694,6 +711,7 @@ class OdometryEstimator:
         self._remember(frame, T_new)
         if vo_frame.state == "ok":
             self._map_scales[vo_frame.map_id] = self._scale.scale
+            self._map_scale_sources[vo_frame.map_id] = self._scale.source
         self._log_frame(frame, stamp_ns, T_new, vo_frame.map_id if vo_frame.state == "ok" else None)
         T_ci_cj = invert_transform(T_prev) @ T_new
         focal_std = self._vo.camera.relative_focal_std()
@@ -766,6 +784,7 @@ class OdometryEstimator:
                 raise NocalError("final_trajectory needs an estimator made with record_trajectory=True")
             log_ = list(self._trajectory_log)
             scales = dict(self._map_scales)
+            self.final_scale_sources = {}
             metric: set[int] = set()
             map_poses = {}
             if self._vo is not None:
@@ -806,6 +825,14 @@ class OdometryEstimator:
                     if arm_scale is not None:
                         scales[map_id] = arm_scale
                         metric.add(map_id)
+                        self.final_scale_sources[map_id] = "arm"
+                        continue
+                    ground = self._ground_scale(local_map) if self.camera_height is not None else None
+                    if ground is not None:
+                        scales[map_id] = ground.scale
+                        self.final_scale_sources[map_id] = "ground"
+                    else:
+                        self.final_scale_sources[map_id] = self._map_scale_sources.get(map_id, "none")
                 map_poses = final_map_poses(self._vo.records, self._vo.camera.calibration,
                                             self.settings.pixel_threshold, self.settings.min_pnp_inliers)
                 # A map made after a loss and sharing landmarks with the one before goes into its frame.
@@ -870,13 +897,39 @@ class OdometryEstimator:
             self._anchor = self._anchor @ T_continued @ invert_transform(T_map)
 
     def _update_scale(self, vo_frame: VOFrame) -> None:
-        """At keyframes, refit the scale to the arm poses of the map's keyframes (see :mod:`~nocal_ros.odometry.scale`)."""
-        if not (vo_frame.keyframe and self._arm_stamps and self._vo is not None and self._vo.map is not None):
+        """At keyframes, refit the scale to the arm poses of the map's keyframes, else (with a camera height,
+        and no arm fit in this map yet) to its ground plane (see :mod:`~nocal_ros.odometry.scale`)."""
+        if not (vo_frame.keyframe and self._vo is not None and self._vo.map is not None):
             return
-        pairs = self._arm_keyframes(self._vo.map)[-ARM_FIT_KEYFRAMES:]
-        estimate = fit_arm_scale(np.array([p for _, p, _ in pairs]), np.array([a for _, _, a in pairs])) if pairs else None
+        estimate = None
+        if self._arm_stamps:
+            pairs = self._arm_keyframes(self._vo.map)[-ARM_FIT_KEYFRAMES:]
+            estimate = fit_arm_scale(np.array([p for _, p, _ in pairs]), np.array([a for _, _, a in pairs])) if pairs else None
+        if estimate is None and self.camera_height is not None and self._scale.source != "arm":
+            estimate = self._ground_scale(self._vo.map, GROUND_FIT_KEYFRAMES)
         if estimate is not None:
             self._scale = estimate
+
+    def _ground_scale(self, local_map: "LocalMap", newest: int | None = None) -> ScaleEstimate | None:
+        """The scale from ``local_map``'s ground plane and :attr:`camera_height`, fitted to the landmarks its
+        ``newest`` keyframes (all: None) observe; None where the map shows no ground plane.
+
+        The end of a replay fits the whole map: over the rendered rooms, windows of
+        :data:`GROUND_FIT_KEYFRAMES` keyframes found a plane that was not the floor in 3 of 20 maps (scale
+        x1.2-2.4), the whole map in none of them (measured; a long drive over hills would need windows).
+        """
+        with local_map.lock:
+            keyframes = local_map.keyframes[-newest:] if newest else list(local_map.keyframes)
+            if len(keyframes) < MIN_GROUND_KEYFRAMES:
+                return None
+            ids = np.unique(np.concatenate([kf.ids for kf in keyframes])).tolist()
+            points = np.array([local_map.landmarks[i] for i in ids if i in local_map.landmarks]).reshape(-1, 3)
+            poses = np.array([kf.T_w_c for kf in keyframes])
+        if np.allclose(self._T_base_cam, np.eye(4)):
+            down_cam = np.array([0.0, 1.0, 0.0])  # the camera is the base: the image's down
+        else:
+            down_cam = self._T_base_cam[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+        return fit_ground_scale(points, poses[:, :3, 3], (poses[:, :3, :3] @ down_cam).mean(0), self.camera_height)
 
     def _arm_keyframes(self, local_map: "LocalMap") -> list[tuple[int, np.ndarray, np.ndarray]]:
         """``(keyframe index, map position, arm position)`` of the map's keyframes with an arm pose, oldest first."""

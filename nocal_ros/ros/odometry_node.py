@@ -103,6 +103,7 @@ PARAMETERS: dict[str, Any] = {
     "threads": 0,
     "camera_name": "camera",
     "camera_info_url": "",
+    "camera_height": 0.0,
     "arm_pose_source": "none",
     "arm_base_frame": "base",
     "arm_tool_frame": "tool",
@@ -147,7 +148,7 @@ class OdometryNode(Node):
         self.estimator = OdometryEstimator(
             p["model_path"] or None, p["device"], frame_period_s=float(p["frame_period"]) or None,
             distortion_model=str(p["distortion_model"]), precision=str(p["precision"]),
-            method=str(p["method"]), calibration=calibration,
+            method=str(p["method"]), calibration=calibration, camera_height=float(p["camera_height"]) or None,
         )
         self.get_logger().info(
             f"model {self.estimator.model_id} on {self.estimator.model.device}, input "
