@@ -119,9 +119,9 @@ POSE_HISTORY = 256
 #: The most recent keyframes with arm poses that the scale is fitted to: a monocular map's scale drifts
 #: (and moves while the online camera converges), so the newest part of the map is the one to match.
 ARM_FIT_KEYFRAMES = 10
-#: The live ground-plane scale is fitted to the newest keyframes' landmarks (a road is a plane locally), once
-#: the map has this many keyframes.
+#: The live ground-plane scale is fitted to this many newest keyframes' landmarks (a road is a plane locally).
 GROUND_FIT_KEYFRAMES = 10
+#: Fewest keyframes for a ground-plane fit.
 MIN_GROUND_KEYFRAMES = 3
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
 ARM_POSE_HISTORY = 10000

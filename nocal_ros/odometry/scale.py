@@ -123,8 +123,6 @@ class GroundPlane:
     normal: np.ndarray
     offset: float
     inliers: int
-    #: The median angle below the horizontal at which its landmarks are seen from their nearest camera.
-    depression_deg: float = 90.0
 
     def heights(self, centres: np.ndarray) -> np.ndarray:
         """Distances of camera centres ``(N, 3)`` above the plane (positive on the cameras' side)."""
@@ -199,10 +197,8 @@ def fit_ground_plane(points: np.ndarray, centres: np.ndarray, down: np.ndarray, 
         normal, offset = _plane_through(candidates[inside])
         if normal @ down < 0:
             normal, offset = -normal, -offset
-    inside = np.abs(candidates @ normal - offset) < band
-    inliers = int(inside.sum())
-    sines = (relative[below] @ down / distances[below])[inside]
-    plane = GroundPlane(normal, offset, inliers, float(np.degrees(np.arcsin(np.median(sines)))) if inliers else 0.0)
+    inliers = int((np.abs(candidates @ normal - offset) < band).sum())
+    plane = GroundPlane(normal, offset, inliers)
     heights = plane.heights(centres)
     if inliers < min_points or normal @ down < cos_tilt or not (heights > MIN_HEIGHT_SHARE * np.median(heights)).all():
         return None
