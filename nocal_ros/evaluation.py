@@ -262,6 +262,30 @@ def rotation_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: n
     """
     from nocal_ros.geometry import so3_log
 
+    def rotation_error(step_est: np.ndarray, step_true: np.ndarray) -> np.ndarray:
+        return so3_log(step_true[:3, :3].T @ step_est[:3, :3])
+
+    return _step_consistency(estimate, truth, covariances, rotation_error)
+
+
+def translation_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
+    """How well the reported translation covariance of each step describes its error (NEES), as
+    :func:`rotation_consistency` does for the rotation.
+
+    The error of a step ``T_ij`` is its translation in the true step's frame, ``R_true^T (t_est - t_true)``
+    (the translation part of ``T_true^-1 T_est``, right perturbation, m); each covariance ``(3, 3)`` is
+    in the later camera's frame (m^2). A step whose length is off by a scale error ``s`` has
+    ``|e| = s |t|``, so a covariance that leaves out the scale's uncertainty is overconfident wherever the
+    scale is guessed.
+    """
+
+    def translation_error(step_est: np.ndarray, step_true: np.ndarray) -> np.ndarray:
+        return step_true[:3, :3].T @ (step_est[:3, 3] - step_true[:3, 3])
+
+    return _step_consistency(estimate, truth, covariances, translation_error)
+
+
+def _step_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.ndarray, error: Any) -> dict[str, Any]:
     estimate = _check_poses(estimate, "estimated poses")
     truth = _check_poses(truth, "true poses")
     covariances = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
@@ -272,9 +296,7 @@ def rotation_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: n
     for k, C in enumerate(covariances):
         if not np.isfinite(C).all() or np.linalg.eigvalsh(0.5 * (C + C.T)).min() <= 0:
             continue
-        R_est = estimate[k, :3, :3].T @ estimate[k + 1, :3, :3]
-        R_true = truth[k, :3, :3].T @ truth[k + 1, :3, :3]
-        e = so3_log(R_true.T @ R_est)
+        e = error(np.linalg.inv(estimate[k]) @ estimate[k + 1], np.linalg.inv(truth[k]) @ truth[k + 1])
         nees.append(float(e @ np.linalg.solve(C, e)))
     if not nees:
         return {"pairs": 0}
@@ -395,11 +417,12 @@ def format_report(report: dict[str, Any]) -> str:
                              f"{tracked['pairs']:>8d}  (pairs of tracked frames)")
         if report.get("ape_sim3") and "scale" in report["ape_sim3"]:
             lines.append(f"  Sim(3) alignment scale {report['ape_sim3']['scale']:>10.4f}")
-        consistency = report.get("rotation_consistency")
-        if consistency and consistency.get("pairs"):
-            lines.append(f"  rotation NEES {consistency['mean_nees']:>10.2f} mean, {consistency['median_nees']:.2f} median "
-                         f"(3 when the covariance is consistent); {100 * consistency['within_99']:.1f} % of "
-                         f"{consistency['pairs']} steps within the 99 % bound")
+        for part in ("rotation", "translation"):
+            consistency = report.get(f"{part}_consistency")
+            if consistency and consistency.get("pairs"):
+                lines.append(f"  {part} NEES {consistency['mean_nees']:>10.2f} mean, {consistency['median_nees']:.2f} median "
+                             f"(3 when the covariance is consistent); {100 * consistency['within_99']:.1f} % of "
+                             f"{consistency['pairs']} steps within the 99 % bound")
     for key, label in (("tracking", "tracking"), ("scale_source", "scale from")):
         if isinstance(report.get(key), dict):
             lines.append(f"{label}: " + ", ".join(f"{k} {v}" for k, v in report[key].items()))

@@ -132,8 +132,10 @@ def test_replay_writes_every_output_readable_by_rosbags(tmp_path, learnt_camera)
     assert report["tracking"] == {"initialising": 1, "ok": 10, "lost": 0}
     assert (report["rpe_tracked"]["pairs"], report["rpe_tracked"]["of_pairs"]) == (9, 10)
     assert report["rpe_tracked"]["rotation_deg"]["max"] < 1e-2
-    # Every step's rotation error against its published covariance: the pose head's own spread, and no error.
-    assert report["rotation_consistency"]["pairs"] == 10 and report["rotation_consistency"]["mean_nees"] < 1e-3
+    # Every step's rotation and translation error against its published covariance: the pose head's own
+    # spread, and no error.
+    for part in ("rotation", "translation"):
+        assert report[f"{part}_consistency"]["pairs"] == 10 and report[f"{part}_consistency"]["mean_nees"] < 1e-3
     assert report["scale_source"] == {"pose_head": 11} and report["arm_poses"] == 0
     calibration = report["calibration"]
     assert calibration["focal_error_px"] < 1e-6  # the learnt camera was built from the true K

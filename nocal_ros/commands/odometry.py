@@ -353,6 +353,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     """The replay itself, writing every output into ``stage``."""
     from nocal_ros.data.bags import BagWriter
     from nocal_ros.odometry import FrameError
+    from nocal_ros.odometry.covariance import adjoint
 
     arm_stamps, arm_poses = _arm_poses(bag, arm_topic)
     next_arm = 0
@@ -361,9 +362,9 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     poses_cam: list[np.ndarray] = []
     tracking: list[str] = []
     scale_sources: list[str] = []
-    # Each step's rotation covariance in the camera frame (NaN where no pair was run), for the report's NEES.
-    step_rotation_covariances: list[np.ndarray] = []
-    R_cam_base = invert_transform(estimator.T_base_cam)[:3, :3]
+    # Each step's covariance (rho, theta) in the camera frame (NaN where no pair was run), for the report's NEES.
+    step_covariances: list[np.ndarray] = []
+    ad_cam_base = adjoint(invert_transform(estimator.T_base_cam))
     camera_history: list[dict[str, Any]] = []  # the online camera after the first frame and at each keyframe
     frames_in = 0
     start, start_cpu = time.perf_counter(), time.process_time()
@@ -401,9 +402,9 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
             poses_cam.append(result.T_odom_cam)
             if result.gap and len(stamps) >= 2:
                 dt = (stamps[-1] - stamps[-2]) * 1e-9
-                step_rotation_covariances.append(R_cam_base @ result.twist_covariance[3:, 3:] @ R_cam_base.T * dt * dt)
+                step_covariances.append(ad_cam_base @ result.twist_covariance @ ad_cam_base.T * dt * dt)
             else:
-                step_rotation_covariances.append(np.full((3, 3), np.nan))
+                step_covariances.append(np.full((6, 6), np.nan))
             tracking.append(result.tracking)
             scale_sources.append(result.scale_source)
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
@@ -434,7 +435,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
         extras={"poses": len(all_stamps), "time_segments": len(segments),
                 "trajectory_segment": [int(first), int(last)], "tracking": tracking[first:last],
                 "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
-                "step_rotation_covariances": step_rotation_covariances[first:last],
+                "step_covariances": step_covariances[first:last],
                 "camera_history": camera_history,
                 "calibration_status": estimator.calibration_status(), "final_trajectory": final},
     )
@@ -547,9 +548,10 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
             report["final_trajectory"]["scale_source"] = {source: sources.count(source) for source in sorted(set(sources))}
         if truth.calibration is not None:
             report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
-    covariances = replay.extras.get("step_rotation_covariances")
+    covariances = replay.extras.get("step_covariances")
     if covariances is not None and len(covariances) == len(replay.stamps_ns) and len(stamps) >= 2:
-        report["rotation_consistency"] = _rotation_consistency(replay, stamps, estimate, T_gt, covariances)
+        report["rotation_consistency"] = _step_consistency(replay, stamps, estimate, T_gt, covariances, "rotation")
+        report["translation_consistency"] = _step_consistency(replay, stamps, estimate, T_gt, covariances, "translation")
     report["method"] = getattr(estimator, "method", "vo")
     tracking = replay.extras.get("tracking") or []
     if tracking:
@@ -605,19 +607,22 @@ def _camera_history_errors(history: list[dict[str, Any]], like: Any, truth: Any)
     return rows
 
 
-def _rotation_consistency(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
-                          covariances: list[np.ndarray]) -> dict[str, Any]:
-    """The published steps' rotation NEES (:func:`nocal_ros.evaluation.rotation_consistency`) over the
-    matched poses; a step between matched poses that were not consecutive in the replay is skipped."""
+def _step_consistency(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
+                      covariances: list[np.ndarray], part: str) -> dict[str, Any]:
+    """The published steps' ``part`` ("rotation" or "translation") NEES
+    (:func:`nocal_ros.evaluation.rotation_consistency`, :func:`~nocal_ros.evaluation.translation_consistency`)
+    over the matched poses; a step between matched poses that were not consecutive in the replay is skipped."""
     from nocal_ros import evaluation
 
+    block = slice(3, 6) if part == "rotation" else slice(0, 3)
     position = {int(stamp): k for k, stamp in enumerate(replay.stamps_ns.tolist())}
     steps = []
     for earlier, later in zip(stamps[:-1].tolist(), stamps[1:].tolist()):
         k = position[int(later)]
         consecutive = k > 0 and int(replay.stamps_ns[k - 1]) == int(earlier)
-        steps.append(covariances[k] if consecutive else np.full((3, 3), np.nan))
-    return evaluation.rotation_consistency(estimate, T_gt, np.array(steps))
+        steps.append(covariances[k][block, block] if consecutive else np.full((3, 3), np.nan))
+    consistency = evaluation.rotation_consistency if part == "rotation" else evaluation.translation_consistency
+    return consistency(estimate, T_gt, np.array(steps))
 
 
 def _tracked_rpe(replay: ReplayResult, stamps: np.ndarray, estimate: np.ndarray, T_gt: np.ndarray,
