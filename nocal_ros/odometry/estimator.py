@@ -123,6 +123,9 @@ ARM_FIT_KEYFRAMES = 10
 GROUND_FIT_KEYFRAMES = 10
 #: Fewest keyframes for a ground-plane fit.
 MIN_GROUND_KEYFRAMES = 3
+#: The live ground-plane scale is the median of the map's newest fits, this many: one fit in 20-40 takes a
+#: plane that is not the floor (heldout_160's last keyframe x3.5, its fifth x1.7; measured).
+GROUND_FIT_HISTORY = 5
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
 ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
@@ -377,6 +380,7 @@ class OdometryEstimator:
             self._anchor: np.ndarray | None = None  # T_odom_map of the current map
             self._anchor_map_id = -1
             self._scale = ScaleEstimate()
+            self._ground_fits: deque[float] = deque(maxlen=GROUND_FIT_HISTORY)  # metres per unit of the map as made
             self._arm_stamps.clear()
             self._arm_poses.clear()
             # (frame, stamp, published T_odom_cam, VO map id or None) per frame, for final_trajectory
@@ -870,6 +874,7 @@ class OdometryEstimator:
         reference = vo_frame.reference_frame
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id
+        self._ground_fits.clear()
         # The map's unit is the baseline between its first two keyframes; measure it in metres.
         baseline = np.linalg.norm(vo_frame.T_map_cam[:3, 3])
         first_guess = None
@@ -898,7 +903,8 @@ class OdometryEstimator:
 
     def _update_scale(self, vo_frame: VOFrame) -> None:
         """At keyframes, refit the scale to the arm poses of the map's keyframes, else (with a camera height,
-        and no arm fit in this map yet) to its ground plane (see :mod:`~nocal_ros.odometry.scale`)."""
+        and no arm fit in this map yet) to its ground plane: the median of the map's newest
+        :data:`GROUND_FIT_HISTORY` fits (see :mod:`~nocal_ros.odometry.scale`)."""
         if not (vo_frame.keyframe and self._vo is not None and self._vo.map is not None):
             return
         estimate = None
@@ -906,7 +912,11 @@ class OdometryEstimator:
             pairs = self._arm_keyframes(self._vo.map)[-ARM_FIT_KEYFRAMES:]
             estimate = fit_arm_scale(np.array([p for _, p, _ in pairs]), np.array([a for _, _, a in pairs])) if pairs else None
         if estimate is None and self.camera_height is not None and self._scale.source != "arm":
-            estimate = self._ground_scale(self._vo.map, GROUND_FIT_KEYFRAMES)
+            fit = self._ground_scale(self._vo.map, GROUND_FIT_KEYFRAMES)
+            if fit is not None:
+                unit = self._vo.map.unit_scale  # fits made before a move of the map are in its earlier unit
+                self._ground_fits.append(fit.scale * unit)
+                estimate = ScaleEstimate(float(np.median(self._ground_fits)) / unit, "ground", fit.samples)
         if estimate is not None:
             self._scale = estimate
 
