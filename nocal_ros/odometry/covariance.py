@@ -44,6 +44,23 @@ def focal_step_covariance(T_ci_cj: np.ndarray, relative_focal_std: float) -> np.
     return np.diag([variance * translation**2] * 3 + [variance * rotation**2] * 3)
 
 
+def scale_step_covariance(T_ci_cj: np.ndarray, relative_scale_std: float) -> np.ndarray:
+    """``(6, 6)`` covariance, ``(rho, theta)``, of a camera step whose length is known to a share.
+
+    A monocular step is metric through a scale: an error ``e`` in it makes the step ``(1 + e)`` times as
+    long, in its own direction. The error lies along the step's translation as seen from the later camera
+    (``R^T t``, right perturbation), the rotation untouched.
+
+    Args:
+        T_ci_cj: ``(4, 4)`` the step, the later camera in the earlier one.
+        relative_scale_std: the scale's standard deviation over its value.
+    """
+    along = T_ci_cj[:3, :3].T @ T_ci_cj[:3, 3]
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = float(relative_scale_std) ** 2 * np.outer(along, along)
+    return covariance
+
+
 def propagate_covariance(
     sigma_i: np.ndarray, T_odom_i: np.ndarray, T_i_j: np.ndarray, sigma_pair: np.ndarray
 ) -> np.ndarray:

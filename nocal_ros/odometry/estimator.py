@@ -7,7 +7,8 @@ Methods (``method=``)
     ``"vo"`` (the default): keyframe visual odometry through the online camera
     (:mod:`nocal_ros.odometry.tracking`, :mod:`~nocal_ros.odometry.local_mapping`): persistent tracks,
     PnP against a local map, windowed bundle adjustment over keyframes, landmarks and the camera in a
-    worker thread, metric scale from arm poses or the NOCaL pose head (:mod:`~nocal_ros.odometry.scale`).
+    worker thread, metric scale from arm poses, the ground plane and a known camera height, or the NOCaL
+    pose head (:mod:`~nocal_ros.odometry.scale`).
     The pose head also bridges frames where geometry fails (``tracking="lost"``), with the rotation
     the tracks show from the previous frame where they go on.
     ``"pose_head"``: the NOCaL pose head alone, integrated pair by pair (the paper's odometry).
@@ -54,7 +55,13 @@ Covariance (how it is derived)
     35 % of the step's size through the f = width guess (:data:`~nocal_ros.odometry.calibration.GUESS_STD`).
     Without it, steps measured through the guess were published at 0.07-0.1 deg per axis where they
     were 1.8-2.3 deg off, and the mean rotation NEES of a replay (3 when consistent) had a median of
-    27 over 23 replays; with it 1.4 (docs/RESULTS.md). The pose covariance, in ROS order
+    27 over 23 replays; with it 1.4 (docs/RESULTS.md). A step's length is also only as good as its
+    scale (:func:`~nocal_ros.odometry.covariance.scale_step_covariance`, along the step): the map's
+    scale's ``relative_std`` for a VO frame (the arm fit's least-squares spread, the ground plane's
+    :data:`~nocal_ros.odometry.scale.GROUND_SCALE_STD` or its fits' wider spread, the pose head's
+    :data:`~nocal_ros.odometry.scale.POSE_HEAD_SCALE_STD`), the pose head's where its length is used.
+    Without it, a replay on the pose head's scale (heldout_160, x0.7) had 51 % of its steps' translation
+    errors within the 99 % bound; with it all. The pose covariance, in ROS order
     ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s axes, is
     propagated to first order::
 
@@ -99,9 +106,23 @@ from nocal_ros.odometry.calibration import (
     calibration_status,
     prior_calibration,
 )
-from nocal_ros.odometry.covariance import UNKNOWN_VARIANCE, adjoint, focal_step_covariance, propagate_covariance
+from nocal_ros.odometry.covariance import (
+    UNKNOWN_VARIANCE,
+    adjoint,
+    focal_step_covariance,
+    propagate_covariance,
+    scale_step_covariance,
+)
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
-from nocal_ros.odometry.scale import ScaleEstimate, fit_arm_scale, fit_arm_similarity, fit_ground_scale
+from nocal_ros.odometry.scale import (
+    GROUND_SCALE_STD,
+    POSE_HEAD_SCALE_STD,
+    UNKNOWN_SCALE_STD,
+    ScaleEstimate,
+    fit_arm_scale,
+    fit_arm_similarity,
+    fit_ground_scale,
+)
 from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFrame
 
 if TYPE_CHECKING:
@@ -123,6 +144,10 @@ ARM_FIT_KEYFRAMES = 10
 GROUND_FIT_KEYFRAMES = 10
 #: Fewest keyframes for a ground-plane fit.
 MIN_GROUND_KEYFRAMES = 3
+#: Relative standard deviation of a map's first scale from the arm's positions at its first two keyframes:
+#: two positions leave no residual to measure it by, so it is taken as 10 % (not measured) until the arm's
+#: fit replaces it from three keyframes.
+ARM_PAIR_SCALE_STD = 0.1
 #: The live ground-plane scale is the median of the map's newest fits, this many: one fit in 20-40 takes a
 #: plane that is not the floor (heldout_160's last keyframe x3.5, its fifth x1.7; measured).
 GROUND_FIT_HISTORY = 5
@@ -725,6 +750,12 @@ class OdometryEstimator:
             # replaced the guess, the step still carries the guess's error (heldout_640's first step through
             # its first window: 0.95 deg off, published at 0.16 deg through the new camera's 3 %).
             sigma = sigma + focal_step_covariance(T_ci_cj, max(focal_std, self._previous_focal_std))
+        # A step is as long as its scale says: the map's (arm, ground, or the pose head's first guess), or
+        # the pose head's own length before a map or where it bridges one.
+        scale_std = self._scale.relative_std if source == "vo" else (
+            POSE_HEAD_SCALE_STD if source in ("two_view", "pose_head") else 0.0)
+        if scale_std > 0:
+            sigma = sigma + scale_step_covariance(T_ci_cj, scale_std)
         self._previous_focal_std = focal_std
         return self._integrate(stamp_ns, T_ci_cj, max(gap, 1), inference_ms, status, source, sigma,
                                tracking=vo_frame.state, keyframe=vo_frame.keyframe)
@@ -888,9 +919,13 @@ class OdometryEstimator:
             if length:
                 # Frames between the reference and the pair's first one: assume a steady speed.
                 first_guess = length * (frame - reference) / (frame - older) / baseline
-        scale = first_guess if first_guess and np.isfinite(first_guess) and first_guess > 0 else 1.0
-        self._scale = ScaleEstimate(scale, "arm" if arm_ref is not None and arm_cur is not None else
-                                    ("pose_head" if first_guess else "none"), 0)
+        usable = bool(first_guess and np.isfinite(first_guess) and first_guess > 0)
+        if not usable:
+            self._scale = ScaleEstimate(1.0, "none", 0, UNKNOWN_SCALE_STD)
+        elif arm_ref is not None and arm_cur is not None:
+            self._scale = ScaleEstimate(first_guess, "arm", 0, ARM_PAIR_SCALE_STD)
+        else:
+            self._scale = ScaleEstimate(first_guess, "pose_head", 0, POSE_HEAD_SCALE_STD)
         if vo_frame.rotation_from_reference is not None:
             # The frame the map starts at keeps the rotation chained frame to frame since the reference,
             # as the frames published before it had, and the map turns about it to match: odometry must
@@ -916,7 +951,10 @@ class OdometryEstimator:
             if fit is not None:
                 unit = self._vo.map.unit_scale  # fits made before a move of the map are in its earlier unit
                 self._ground_fits.append(fit.scale * unit)
-                estimate = ScaleEstimate(float(np.median(self._ground_fits)) / unit, "ground", fit.samples)
+                logs = np.log(self._ground_fits)
+                spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs)))) if len(logs) >= 3 else 0.0
+                estimate = ScaleEstimate(float(np.exp(np.median(logs))) / unit, "ground", fit.samples,
+                                         max(GROUND_SCALE_STD, spread))
         if estimate is not None:
             self._scale = estimate
 
