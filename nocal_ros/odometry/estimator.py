@@ -191,7 +191,7 @@ class OdometryResult:
             ``"rotation"`` (a rotation explains the tracks: no translation); ``"pose_head"`` or
             ``"none"`` (held still) when lost.
         tracking: ``"initialising"``, ``"ok"`` or ``"lost"`` (see the module notes).
-        scale_source: what made the translation metric: ``"arm"``, ``"pose_head"`` or ``"none"``.
+        scale_source: what made the translation metric: ``"arm"``, ``"ground"``, ``"pose_head"`` or ``"none"``.
         keyframe: the frame became a VO keyframe.
     """
 
@@ -953,7 +953,7 @@ class OdometryEstimator:
                 self._ground_fits.append(fit.scale * unit)
                 logs = np.log(self._ground_fits)
                 spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs)))) if len(logs) >= 3 else 0.0
-                estimate = ScaleEstimate(float(np.exp(np.median(logs))) / unit, "ground", fit.samples,
+                estimate = ScaleEstimate(float(np.median(self._ground_fits)) / unit, "ground", fit.samples,
                                          max(GROUND_SCALE_STD, spread))
         if estimate is not None:
             self._scale = estimate
