@@ -50,6 +50,7 @@ BAD_ARGUMENTS = [
     (["demo", "--size", "4x4"], "--size"),
     (["bench", "--iterations", "0"], "--iterations"),
     (["bench", "--devices", "cpu,bogus"], "--devices"),
+    (["bench", "--camera-height", "-1"], "--camera-height"),
 ]
 
 

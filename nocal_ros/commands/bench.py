@@ -11,7 +11,9 @@ For each device (CPU, and CUDA when present) it prints:
   tracking thread's cost per frame (frontend and PnP), the local mapping's per keyframe (the bundle
   adjustment alone, and with triangulation), the whole estimator per frame, and a replay at
   ``--rate`` Hz in real time with mapping in its worker, the way the node runs it: frames that arrive
-  while one is being processed replace the waiting one and are counted as dropped.
+  while one is being processed replace the waiting one and are counted as dropped. With a camera height
+  (``--camera-height``; the rendered motion's own mean height with ``--camera-height auto``), also the
+  live ground-plane fit per keyframe, which runs in the tracking thread.
 
 On CUDA the estimator runs with CUDA graphs and pinned memory (as the node does), and in half
 precision too, with the pose difference half precision makes against fp32 on the same frames.
@@ -51,7 +53,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames of the VO runs (rendered at --native unless --bag)")
     parser.add_argument("--bag", default="", help="take the VO's frames from this bag's images instead of rendering")
     parser.add_argument("--rate", type=arg.positive_float, default=30.0, help="real-time replay rate (Hz) of the VO")
+    parser.add_argument("--camera-height", default="", type=_camera_height,
+                        help="the VO's camera height above the ground (m), for its ground-plane scale; 'auto': the "
+                        "rendered motion's mean true height (default: none)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+
+
+def _camera_height(text: str) -> str | float:
+    return text if text in ("", "auto") else arg.positive_float(text)
 
 
 def _pose_model(args: argparse.Namespace, device: torch.device):
@@ -137,12 +146,14 @@ def bench_pose_head(pose_model, iterations: int, warmup: int) -> dict[str, Any]:
     return results
 
 
-def _rendered_frames(native: tuple[int, int], count: int) -> list[np.ndarray]:
-    """A rendered camera motion (the demo's camera and room): the VO needs real motion to track."""
+def _rendered_frames(native: tuple[int, int], count: int) -> tuple[list[np.ndarray], float]:
+    """A rendered camera motion (the demo's camera and room; the VO needs real motion to track) and its
+    mean true height above the floor (m)."""
     from nocal_ros.commands.demo import DEMO_SEED, demo_camera
     from nocal_ros.data.synthetic import render_sequence
 
-    return list(render_sequence(demo_camera(*native), count, seed=DEMO_SEED, split="test").images)
+    sequence = render_sequence(demo_camera(*native), count, seed=DEMO_SEED, split="test")
+    return list(sequence.images), float(sequence.ground_truth[:, 2, 3].mean())  # the floor is the world's z = 0
 
 
 def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup: int,
@@ -174,14 +185,19 @@ def bench_estimator(pose_model, native: tuple[int, int], iterations: int, warmup
     return stats, np.asarray(poses)
 
 
-def _vo_frames(native: tuple[int, int], count: int, bag: str) -> tuple[list[np.ndarray], str]:
+def _vo_frames(native: tuple[int, int], count: int, bag: str, camera_height: str | float = "") -> tuple[list[np.ndarray], str, float | None]:
+    """The VO's frames, what they are, and the camera height to run them with (None: no ground-plane scale)."""
     if not bag:
-        return _rendered_frames(native, count), f"rendered demo camera at {native[0]}x{native[1]}"
+        images, true_height = _rendered_frames(native, count)
+        height = true_height if camera_height == "auto" else (camera_height or None)
+        return images, f"rendered demo camera at {native[0]}x{native[1]}", height
+    if camera_height == "auto":
+        raise NocalError("--camera-height auto needs the rendered motion; give the height of --bag's camera in metres")
     from nocal_ros.data.bags import read_sequence
 
     sequence = read_sequence(bag, pose_source="none", max_frames=count)
     images = list(sequence.images)
-    return images, f"{bag} ({images[0].shape[1]}x{images[0].shape[0]})"
+    return images, f"{bag} ({images[0].shape[1]}x{images[0].shape[0]})", camera_height or None
 
 
 def _percentiles(values: list[float] | np.ndarray) -> dict[str, float] | None:
@@ -190,7 +206,8 @@ def _percentiles(values: list[float] | np.ndarray) -> dict[str, float] | None:
     return _stats(values) if len(values) else None
 
 
-def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) -> dict[str, Any]:
+def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float,
+             camera_height: float | None = None) -> dict[str, Any]:
     """The keyframe VO's costs on ``frames`` (see the module notes); the first ``warmup`` frames'
     tracking times are left out (they hold the map's initialisation)."""
     from nocal_ros.data.bags import decode_image
@@ -200,7 +217,7 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) 
     period_ns = int(round(1e9 / rate_hz))
 
     # In order, mapping inline: every frame and every keyframe timed, nothing dropped.
-    estimator = OdometryEstimator(pose_model, method="vo", synchronous_mapping=True)
+    estimator = OdometryEstimator(pose_model, method="vo", synchronous_mapping=True, camera_height=camera_height)
     per_frame: list[float] = []
     for k, message in enumerate(messages):
         start = time.perf_counter()
@@ -216,13 +233,15 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float) 
         # The estimator's whole per-frame cost with mapping inline (decode, pose head ring, tracking,
         # the keyframes' mapping): what a replay with --synchronous mapping pays per frame on average.
         "estimator_inline_mean_ms": float(np.mean(per_frame)),
+        "camera_height_m": camera_height,
+        "ground_fit": _percentiles(timings["ground_fit"]),
         "keyframes": int(estimator.counters.keyframes),
         "tracking_states": dict(vars(estimator.counters)),
     }
     estimator.close()
 
     # In real time, mapping in its worker: frames arrive every 1/rate s; the worker takes the newest.
-    estimator = OdometryEstimator(pose_model, method="vo")
+    estimator = OdometryEstimator(pose_model, method="vo", camera_height=camera_height)
     replay = replay_at_rate(messages, rate_hz, lambda k, message: estimator.process(
         k * period_ns, decode_image(message), encoding="rgb8"))
     estimator.wait_for_mapping(timeout=60.0)
@@ -279,8 +298,8 @@ def run_bench(args: argparse.Namespace) -> dict[str, Any]:
         entry["pose_head"] = bench_pose_head(pose_model, args.iterations, args.warmup)
         entry["estimator"], poses32 = bench_estimator(pose_model, native, args.iterations, args.warmup, channels_last=layout)
         if args.vo:
-            frames, source = _vo_frames(native, args.vo_frames, args.bag)
-            entry["vo"] = bench_vo(pose_model, frames, min(args.warmup, 20), args.rate)
+            frames, source, height = _vo_frames(native, args.vo_frames, args.bag, args.camera_height)
+            entry["vo"] = bench_vo(pose_model, frames, min(args.warmup, 20), args.rate, height)
             entry["vo"]["source"] = source
         if device.type == "cuda":
             entry["estimator_eager"], _ = bench_estimator(pose_model, native, args.iterations, args.warmup,
@@ -335,6 +354,10 @@ def _format_vo(vo: dict[str, Any]) -> list[str]:
         f"    bundle adjustment:                   {figure(vo['bundle_adjustment'], 'per keyframe')}",
         f"    local mapping (with triangulation):  {figure(vo['mapping'], 'per keyframe')}",
         f"    estimator, mapping inline:           mean {vo['estimator_inline_mean_ms']:.1f} ms per frame",
+    ]
+    if vo.get("camera_height_m"):
+        lines.append(f"    ground-plane fit ({vo['camera_height_m']:.3f} m):     {figure(vo['ground_fit'], 'per keyframe')}")
+    lines += [
         f"    real time at {realtime['rate_hz']:g} Hz, mapping in its worker: {realtime['frames_processed']} of "
         f"{realtime['frames_sent']} frames processed, {realtime['frames_dropped']} dropped; latency "
         f"{figure(realtime['latency'])}; worker CPU {figure(realtime['worker_cpu'])}; "

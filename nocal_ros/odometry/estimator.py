@@ -406,6 +406,7 @@ class OdometryEstimator:
             self._anchor_map_id = -1
             self._scale = ScaleEstimate()
             self._ground_fits: deque[float] = deque(maxlen=GROUND_FIT_HISTORY)  # metres per unit of the map as made
+            self._ground_fit_ms: deque[float] = deque(maxlen=500)
             self._arm_stamps.clear()
             self._arm_poses.clear()
             # (frame, stamp, published T_odom_cam, VO map id or None) per frame, for final_trajectory
@@ -518,14 +519,15 @@ class OdometryEstimator:
     def timings(self) -> dict[str, list[float]]:
         """The VO's recent costs in milliseconds (empty lists before the first frame or with ``pose_head``):
         ``tracking`` per frame (frontend, PnP, keyframe decision; inline mapping excluded), ``mapping`` per
-        mapped batch of keyframes (triangulation and bundle adjustment) and ``bundle_adjustment`` per
-        solve (in the worker process when mapping is asynchronous, the hand-over included)."""
+        mapped batch of keyframes (triangulation and bundle adjustment), ``bundle_adjustment`` per
+        solve (in the worker process when mapping is asynchronous, the hand-over included) and, with a
+        camera height, ``ground_fit`` per live ground-plane fit (in the tracking thread, at keyframes)."""
         with self._lock:
             vo = self._vo
             if vo is None:
-                return {"tracking": [], "mapping": [], "bundle_adjustment": []}
+                return {"tracking": [], "mapping": [], "bundle_adjustment": [], "ground_fit": []}
             return {"tracking": list(vo.milliseconds), "mapping": list(vo.mapping.milliseconds),
-                    "bundle_adjustment": list(vo.mapping.solve_milliseconds)}
+                    "bundle_adjustment": list(vo.mapping.solve_milliseconds), "ground_fit": list(self._ground_fit_ms)}
 
     @property
     def keyframes_merged(self) -> int:
@@ -947,7 +949,9 @@ class OdometryEstimator:
             pairs = self._arm_keyframes(self._vo.map)[-ARM_FIT_KEYFRAMES:]
             estimate = fit_arm_scale(np.array([p for _, p, _ in pairs]), np.array([a for _, _, a in pairs])) if pairs else None
         if estimate is None and self.camera_height is not None and self._scale.source != "arm":
+            start = time.perf_counter()
             fit = self._ground_scale(self._vo.map, GROUND_FIT_KEYFRAMES)
+            self._ground_fit_ms.append((time.perf_counter() - start) * 1e3)
             if fit is not None:
                 unit = self._vo.map.unit_scale  # fits made before a move of the map are in its earlier unit
                 self._ground_fits.append(fit.scale * unit)
