@@ -327,6 +327,29 @@ def test_ground_plane_is_below_the_cameras_and_absent_where_the_map_shows_none()
             fit_ground_scale(overpass["points"], overpass["centres"], overpass["down"], height)
 
 
+def test_the_floor_beneath_a_table_with_more_landmarks_is_the_ground():
+    """A room, world z up: cameras 1.5 m above the floor looking ahead and down, a table top 0.75 m
+    high in front with 120 landmarks, the floor beyond it with 100, walls from 0.3 m up. The table has
+    most support, but more than half as many landmarks lie far beneath it (the floor's and the walls'), so
+    the floor is searched for beneath it and found: the scale is exact. With nothing beneath (the map
+    shows the table alone) the table is all there is to take."""
+    rng = np.random.default_rng(4)
+    centres = np.stack([np.linspace(0, 2, 8), np.zeros(8), np.full(8, 1.5)], axis=1)
+    table = np.stack([rng.uniform(-1, 3, 120), rng.uniform(1.5, 3, 120), np.full(120, 0.75)], axis=1)
+    floor = np.stack([rng.uniform(-3, 5, 100), rng.uniform(3.5, 8, 100), np.zeros(100)], axis=1)
+    walls = np.stack([rng.choice([-4.0, 6.0], 200), rng.uniform(0, 8, 200), rng.uniform(0.3, 2.5, 200)], axis=1)
+    scale, R, t = 0.21, so3_exp(np.array([-0.7, 0.2, 1.3])), np.array([1.0, 3.0, -2.0])  # world = scale R map + t
+    to_map = lambda x: (x - t) @ R / scale  # noqa: E731
+    down = R.T @ np.array([0.0, 0.0, -1.0])  # the base's -z through TF
+    points = to_map(np.concatenate([table, floor, walls]))
+    plane = fit_ground_plane(points, to_map(centres), down)
+    np.testing.assert_allclose(plane.normal, R.T @ [0, 0, -1.0], atol=1e-9)
+    assert plane.inliers == 100
+    assert fit_ground_scale(points, to_map(centres), down, 1.5).scale == pytest.approx(scale, rel=1e-9)
+    table_alone = fit_ground_plane(to_map(table), to_map(centres), down)
+    np.testing.assert_allclose(table_alone.heights(to_map(centres)) * scale, 0.75, rtol=1e-9)
+
+
 def shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
     return cv2.warpAffine(image, np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]]), (image.shape[1], image.shape[0]),
                           flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
