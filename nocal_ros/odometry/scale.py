@@ -19,8 +19,9 @@ A monocular map is correct up to one scale factor ``s`` (metres per map unit). T
   direction, and beneath it again where many landmarks lie far beneath it (the top of a table or box:
   :func:`fit_ground_plane`); the cameras' median height above it, in map units, against the known
   height gives ``s`` (:func:`fit_ground_scale`). Measured on the final maps of the dev bags with
-  the bag's mean true height: 0.976-1.020 of the true scale on 18 rendered maps (none found on two), and
-  0.997 on KITTI's frames 20-50 with its 1.65 m, where the pose head's scale was off by x0.2-51.
+  the bag's mean true height: 0.976-1.021 of the true scale on 18 rendered maps, 1.058 on r160_202's
+  (found beneath a plane rejected), none on r640_304's first five keyframes, and 0.997 on KITTI's frames
+  20-50 with its 1.65 m, where the pose head's scale was off by x0.2-51.
 
 Arm poses win whenever a fit is possible, then the ground plane; ``source`` says which was used.
 
