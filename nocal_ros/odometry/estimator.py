@@ -955,7 +955,7 @@ class OdometryEstimator:
             if fit is not None:
                 unit = self._vo.map.unit_scale  # fits made before a move of the map are in its earlier unit
                 self._ground_fits.append(fit.scale * unit)
-                logs = np.log(self._ground_fits)
+                logs = np.log(self._ground_fits)  # the fits' spread: their MAD as a normal's standard deviation
                 spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs)))) if len(logs) >= 3 else 0.0
                 estimate = ScaleEstimate(float(np.median(self._ground_fits)) / unit, "ground", fit.samples,
                                          max(GROUND_SCALE_STD, spread))
