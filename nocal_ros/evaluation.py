@@ -286,6 +286,8 @@ def translation_consistency(estimate: np.ndarray, truth: np.ndarray, covariances
 
 
 def _step_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.ndarray, error: Any) -> dict[str, Any]:
+    from nocal_ros.geometry import relative_transform
+
     estimate = _check_poses(estimate, "estimated poses")
     truth = _check_poses(truth, "true poses")
     covariances = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
@@ -296,7 +298,7 @@ def _step_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.n
     for k, C in enumerate(covariances):
         if not np.isfinite(C).all() or np.linalg.eigvalsh(0.5 * (C + C.T)).min() <= 0:
             continue
-        e = error(np.linalg.inv(estimate[k]) @ estimate[k + 1], np.linalg.inv(truth[k]) @ truth[k + 1])
+        e = error(relative_transform(estimate[k], estimate[k + 1]), relative_transform(truth[k], truth[k + 1]))
         nees.append(float(e @ np.linalg.solve(C, e)))
     if not nees:
         return {"pairs": 0}

@@ -284,6 +284,18 @@ def test_eval_refuses_bad_inputs_in_one_line(bag_and_model, tmp_path, capsys):
     assert "corrupt.mcap" in capsys.readouterr().err
 
 
+def steps_with_drawn_errors(n: int, trajectory_seed: int, noise_seed: int):
+    """A random trajectory's ``n - 1`` true steps, a random covariance ``(3, 3)`` per step, and an error drawn
+    from each: ``(truth, steps, covariances, errors)``."""
+    truth = random_trajectory(n, seed=trajectory_seed)
+    rng = np.random.default_rng(noise_seed)
+    factors = rng.normal(scale=0.01, size=(n - 1, 3, 3))
+    covariances = factors @ factors.transpose(0, 2, 1) + 1e-6 * np.eye(3)
+    errors = np.stack([rng.multivariate_normal(np.zeros(3), C) for C in covariances])
+    steps = [g.relative_transform(truth[i], truth[i + 1]) for i in range(n - 1)]
+    return truth, steps, covariances, errors
+
+
 def test_rotation_nees_of_errors_drawn_from_the_reported_covariance_is_three():
     """Steps whose rotation errors are drawn from their covariances give a mean NEES of 3 (chi-square,
     3 degrees of freedom) and 99 % of them under the 99 % bound; covariances half as large double it.
@@ -291,12 +303,7 @@ def test_rotation_nees_of_errors_drawn_from_the_reported_covariance_is_three():
     from scipy.spatial.transform import Rotation
 
     n = 3001
-    truth = random_trajectory(n, seed=11)
-    rng = np.random.default_rng(12)
-    factors = rng.normal(scale=0.01, size=(n - 1, 3, 3))
-    covariances = factors @ factors.transpose(0, 2, 1) + 1e-6 * np.eye(3)
-    errors = np.stack([rng.multivariate_normal(np.zeros(3), C) for C in covariances])
-    steps = [g.relative_transform(truth[i], truth[i + 1]) for i in range(n - 1)]
+    truth, steps, covariances, errors = steps_with_drawn_errors(n, 11, 12)
     noisy = [step @ g.make_transform(Rotation.from_rotvec(e).as_matrix(), np.zeros(3)) for step, e in zip(steps, errors)]
     estimate = ev.integrate_relative_poses(np.stack(noisy), start=truth[0])
 
@@ -322,12 +329,7 @@ def test_translation_nees_of_errors_drawn_from_the_reported_covariance_is_three(
     leaves out the scale is far outside it, and one whose covariance holds the scale's 10 % is not. The
     rotations are exact, so the rotation errors play no part."""
     n = 3001
-    truth = random_trajectory(n, seed=13)
-    rng = np.random.default_rng(14)
-    factors = rng.normal(scale=0.01, size=(n - 1, 3, 3))
-    covariances = factors @ factors.transpose(0, 2, 1) + 1e-6 * np.eye(3)
-    errors = np.stack([rng.multivariate_normal(np.zeros(3), C) for C in covariances])
-    steps = [g.relative_transform(truth[i], truth[i + 1]) for i in range(n - 1)]
+    truth, steps, covariances, errors = steps_with_drawn_errors(n, 13, 14)
     noisy = [step @ g.make_transform(np.eye(3), e) for step, e in zip(steps, errors)]
     estimate = ev.integrate_relative_poses(np.stack(noisy), start=truth[0])
 
