@@ -269,6 +269,26 @@ def test_scale_step_covariance_lies_along_the_step_seen_from_the_later_camera():
     assert not covariance[3:].any() and not covariance[:, 3:].any()
 
 
+def test_a_direction_free_step_covariance_holds_a_step_of_that_length_in_any_direction():
+    """A step whose direction is not known may lie anywhere about the measured one: the covariance is
+    isotropic, each axis the measured length times ``1 + std``, and nothing in the rotation. The true
+    step opposite the measured one and as long (an error of twice the length) has a NEES of
+    ``(2 / (1 + std))^2``; a true step of no length, ``(1 / (1 + std))^2``, from any direction."""
+    from nocal_ros.odometry.covariance import direction_free_step_covariance
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        measured = np.eye(4)
+        measured[:3, :3], measured[:3, 3] = so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.05, 3)
+        covariance = direction_free_step_covariance(measured, 1.2)
+        assert not covariance[3:].any() and not covariance[:, 3:].any()
+        for true_translation, nees in ((-measured[:3, 3], (2 / 2.2) ** 2), (np.zeros(3), (1 / 2.2) ** 2)):
+            true = measured.copy()
+            true[:3, 3] = true_translation
+            error = (np.linalg.inv(true) @ measured)[:3, 3]
+            assert error @ np.linalg.solve(covariance[:3, :3], error) == pytest.approx(nees, rel=1e-9)
+
+
 def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False) -> dict:
     """A drive down a street, world z up: cameras 1.65 m above a road (z = 0), pitched 3 deg down, facing
     +y; building fronts at x = +-7 m from 0.5 m up; with ``ceiling``, a denser plane 5 m up (an overpass). Returned in

@@ -61,6 +61,24 @@ def scale_step_covariance(T_ci_cj: np.ndarray, relative_scale_std: float) -> np.
     return covariance
 
 
+def direction_free_step_covariance(T_ci_cj: np.ndarray, relative_length_std: float) -> np.ndarray:
+    """``(6, 6)`` covariance, ``(rho, theta)``, of a step whose translation's direction is not known.
+
+    The true step may then lie in any direction from the measured one, about as long as measured to
+    ``relative_length_std``: an isotropic error, each axis the measured length times
+    ``1 + relative_length_std``. Through the guessed camera on the pose head's scale, 79 % of 206 such
+    steps of 21 dev replays fell within the 99 % bound with it, against 61 % without (docs/RESULTS.md).
+
+    Args:
+        T_ci_cj: ``(4, 4)`` the step as measured, the later camera in the earlier one.
+        relative_length_std: the measured length's standard deviation over its value.
+    """
+    length = float(np.linalg.norm(T_ci_cj[:3, 3]))
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = (length * (1.0 + float(relative_length_std))) ** 2 * np.eye(3)
+    return covariance
+
+
 def propagate_covariance(
     sigma_i: np.ndarray, T_odom_i: np.ndarray, T_i_j: np.ndarray, sigma_pair: np.ndarray
 ) -> np.ndarray:

@@ -149,6 +149,8 @@ class VOFrame:
             guessed camera).
         rotation_from_previous: ``R_prev_cur`` fitted to the tracks a frame that lost the map shares with
             the previous frame (PnP failed; None when unknown).
+        through_guess: the online camera was still the guess when this frame was tracked
+            (:attr:`~nocal_ros.odometry.calibration.OnlineCamera.is_guess`).
     """
 
     state: str
@@ -166,6 +168,7 @@ class VOFrame:
     T_prev_cur: np.ndarray | None = None
     guess_rescued: bool = False
     rotation_from_previous: np.ndarray | None = None
+    through_guess: bool = False
 
 
 class VisualOdometry:
@@ -233,7 +236,9 @@ class VisualOdometry:
     def process(self, frame: int, stamp_ns: int, image: np.ndarray) -> VOFrame:
         start = time.perf_counter()
         self._mapping_inline_s = 0.0
+        through_guess = self.camera.is_guess  # before a solve can land during this frame
         result = self._process(frame, stamp_ns, image)
+        result.through_guess = through_guess
         self.milliseconds.append((time.perf_counter() - start - self._mapping_inline_s) * 1e3)
         return result
 
