@@ -30,6 +30,7 @@ BAD_ARGUMENTS = [
     (["odometry", "BAG", "--out", "OUT", "--camera-height", "0"], "--camera-height"),
     (["odometry", "BAG", "--out", "OUT", "--camera-height", "nan"], "--camera-height"),
     (["odometry", "BAG", "--out", "OUT", "--base-to-camera", "0", "0", "0", "0", "0", "0", "nan"], "--base-to-camera"),
+    (["odometry", "BAG", "--out", "OUT", "--ground-to-camera", "0", "0", "inf", "0", "0", "0", "1"], "--ground-to-camera"),
     (["synth", "--out", "OUT", "--fps", "nan"], "--fps"),
     (["synth", "--out", "OUT", "--speed", "inf"], "--speed"),
     (["synth", "--out", "OUT", "--frames", "0"], "--frames"),

@@ -98,3 +98,18 @@ def test_odometry_refuses_a_zero_quaternion_mounting(tmp_path, small_bag, capsys
     assert code == 1, err
     assert err.strip().splitlines() == [err.strip()] and "--base-to-camera" in err and "quaternion" in err
     assert not (out / "trajectory.tum").exists()
+
+
+@pytest.mark.parametrize("mounting, message", [
+    (["0", "0", "1.2", "0", "0", "0", "0"], "quaternion"),
+    (["0", "0", "-0.4", "0", "0", "0", "1"], "ground frame"),
+    (["0", "0", "1.2", "0", "0", "0", "1", "--camera-height", "1.2"], "not both"),
+], ids=["zero quaternion", "ground above the camera", "with --camera-height"])
+def test_odometry_refuses_a_ground_frame_it_cannot_use(tmp_path, small_bag, capsys, mounting, message):
+    out = tmp_path / "out"
+    code = main(["odometry", str(small_bag), "--out", str(out), "--threads", "1", "--no-progress",
+                 "--ground-to-camera", *mounting])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert err.strip().splitlines() == [err.strip()] and "--ground-to-camera" in err and message in err
+    assert not out.exists() or not any(out.iterdir())

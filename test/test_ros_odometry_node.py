@@ -350,6 +350,26 @@ def test_a_url_camera_info_manager_would_not_accept_stops_the_node_with_one_line
         rclpy.try_shutdown(context=context)
 
 
+def test_a_ground_frame_in_tf_gives_the_estimator_the_cameras_height_and_the_grounds_down(ros, frames):
+    """``ground_frame`` (REP 120's base_footprint, beneath base_link here): the camera's height and the
+    ground's down come from TF ``base_footprint -> camera_optical``, composed through base_link; with
+    ``camera_height`` as well the node refuses to start."""
+    node, harness = ros(ground_frame="base_footprint")
+    T_footprint_base = make_transform(np.eye(3), np.array([0.1, -0.2, 0.4]))
+    harness.static.sendTransform([  # both at once: the child frames' one parent each
+        transform_stamped(T_BASE_CAM, ns_to_stamp(START_NS), "base_link", "camera_optical"),
+        transform_stamped(T_footprint_base, ns_to_stamp(START_NS), "base_footprint", "base_link")])
+    publish_sequence(harness, frames[:3])
+    T_ground_cam = T_footprint_base @ T_BASE_CAM
+    assert wait_for(lambda: node.estimator.camera_height is not None)
+    assert node.estimator.camera_height == pytest.approx(T_ground_cam[2, 3], abs=1e-6)  # 0.9 m
+    np.testing.assert_allclose(node.estimator._down_cam, T_ground_cam[:3, :3].T @ [0.0, 0.0, -1.0], atol=1e-6)
+    _, _, values = node.diagnostics()
+    assert values["ground_frame"] == "base_footprint" and values["camera_height_m"] == pytest.approx(0.9, abs=1e-6)
+    with pytest.raises(ConfigError, match="not both"):
+        ros(ground_frame="base_footprint", camera_height=1.2)
+
+
 def test_arm_poses_from_a_pose_topic_reach_the_estimator_with_the_hand_eye(ros):
     node, harness = ros(arm_pose_source="pose", T_tool_cam=T_TOOL_CAM.ravel().tolist())
     assert wait_for(lambda: harness.arm.get_subscription_count() > 0 and node.arm_subscription.get_publisher_count() > 0)

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from nocal_ros.errors import NocalError
 from nocal_ros.geometry import invert_transform, make_transform, so3_exp, so3_log
 from nocal_ros.lens import CameraCalibration
 from nocal_ros.odometry.frontend import (
@@ -289,13 +290,13 @@ def test_a_direction_free_step_covariance_holds_a_step_of_that_length_in_any_dir
             assert error @ np.linalg.solve(covariance[:3, :3], error) == pytest.approx(nees, rel=1e-9)
 
 
-def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False) -> dict:
-    """A drive down a street, world z up: cameras 1.65 m above a road (z = 0), pitched 3 deg down, facing
-    +y; building fronts at x = +-7 m from 0.5 m up; with ``ceiling``, a denser plane 5 m up (an overpass). Returned in
-    a map frame that is the world moved by a known similarity (``scale`` metres per map unit), as a
-    monocular map holds it."""
+def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False, pitch_deg: float = 3.0) -> dict:
+    """A drive down a street, world z up: cameras 1.65 m above a road (z = 0), pitched ``pitch_deg`` down,
+    facing +y; building fronts at x = +-7 m from 0.5 m up; with ``ceiling``, a denser plane 5 m up (an
+    overpass). Returned in a map frame that is the world moved by a known similarity (``scale`` metres per
+    map unit), as a monocular map holds it, with the cameras' poses in it (``poses``)."""
     rng = np.random.default_rng(seed)
-    pitch = np.radians(3.0)
+    pitch = np.radians(pitch_deg)
     # optical axes in the world: x right, y down, z forward (+y), turned about x by the pitch
     level = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
     R_w_c = so3_exp(np.array([-pitch, 0, 0])) @ level
@@ -309,8 +310,10 @@ def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False) -> dict:
     scale, R, t = 0.37, so3_exp(np.array([0.4, -1.1, 0.3])), np.array([2.0, -1.0, 5.0])  # world = scale R map + t
     to_map = lambda x: (x - t) @ R / scale  # noqa: E731
     down = R.T @ (R_w_c @ np.array([0.0, 1.0, 0.0]))
+    poses = np.tile(np.eye(4), (len(centres), 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = R.T @ R_w_c, to_map(centres)
     return dict(points=to_map(points), centres=to_map(centres), down=down, scale=scale, road_normal=R.T @ [0, 0, -1.0],
-                world=dict(road=road, centres=centres, down=R_w_c @ np.array([0.0, 1.0, 0.0])))
+                poses=poses, world=dict(road=road, centres=centres, down=R_w_c @ np.array([0.0, 1.0, 0.0]), R_w_c=R_w_c))
 
 
 def test_ground_scale_is_the_camera_height_over_its_height_above_the_road_in_the_map():
@@ -345,6 +348,40 @@ def test_ground_plane_is_below_the_cameras_and_absent_where_the_map_shows_none()
     for height in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="camera height"):
             fit_ground_scale(overpass["points"], overpass["centres"], overpass["down"], height)
+
+
+def test_a_ground_frame_gives_the_height_and_the_down_of_a_camera_pitched_towards_the_road():
+    """A camera pitched 35 deg down, more than the plane fit's tilt (``GROUND_MAX_TILT_DEG``): through the
+    image's down (the camera as its own base) the road's normal is 35 deg off, and no plane is taken.
+    Through a ground frame beneath the camera (``set_ground_to_camera``: REP 120's base_footprint) the
+    height is the camera's z there and the down that frame's -z: the road is found and the scale exact. A
+    ground frame above the camera is refused."""
+    from nocal_ros.odometry import OdometryEstimator
+    from nocal_ros.odometry.map import LocalMap
+    from nocal_ros.odometry.scale import GROUND_MAX_TILT_DEG
+
+    pitched = street(pitch_deg=35.0)
+    assert 35.0 > GROUND_MAX_TILT_DEG
+    local_map = LocalMap()
+    ids = np.arange(len(pitched["points"]))
+    for k, pose in enumerate(pitched["poses"]):
+        local_map.add_keyframe(k, k, pose, ids, np.zeros((len(ids), 2)))
+    local_map.landmarks.update(enumerate(pitched["points"]))
+    estimator = OdometryEstimator(camera_height=1.65)
+    assert estimator._ground_scale(local_map) is None
+    T_ground_cam = np.eye(4)
+    T_ground_cam[:3, :3], T_ground_cam[2, 3] = pitched["world"]["R_w_c"], 1.65
+    estimator.set_ground_to_camera(T_ground_cam)
+    assert estimator.camera_height == 1.65
+    assert estimator._ground_scale(local_map).scale == pytest.approx(pitched["scale"], rel=1e-9)
+    below = T_ground_cam.copy()
+    below[2, 3] = -0.3
+    with pytest.raises(NocalError, match="ground frame"):
+        estimator.set_ground_to_camera(below)
+    with pytest.raises(ValueError, match="4x4"):
+        estimator.set_ground_to_camera(np.full((4, 4), np.nan))
+    assert estimator.camera_height == 1.65
+    estimator.close()
 
 
 def test_the_floor_beneath_a_table_with_more_landmarks_is_the_ground():

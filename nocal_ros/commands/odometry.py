@@ -83,6 +83,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-height", type=arg.positive_float, default=None, metavar="M",
                         help="the camera's height above the ground (m; KITTI: 1.65): where no arm poses fit, the "
                              "scale comes from the ground plane in the map instead of the pose head")
+    parser.add_argument(
+        "--ground-to-camera", type=arg.finite_float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        help="static pose of the camera optical frame in a frame on the ground beneath it, z up (REP 120's "
+             "base_footprint): the camera's height (Z) and the ground's normal for the ground-plane scale, "
+             "instead of --camera-height",
+    )
     parser.add_argument("--no-final", action="store_true",
                         help="skip trajectory_final.tum and calibration_final.yaml (the replay then keeps no "
                              "per-frame tracks: about 7 KB per frame, 0.7 GB per hour of a 30 Hz camera at 300 tracks)")
@@ -106,6 +112,14 @@ def run(args: argparse.Namespace) -> int:
             T_base_cam = transform_from_translation_quaternion(args.base_to_camera[:3], args.base_to_camera[3:])
         except InvalidTransformError as error:
             raise ConfigError(f"--base-to-camera: {error}") from None
+    T_ground_cam = None
+    if args.ground_to_camera:
+        if args.camera_height is not None:
+            raise ConfigError("give --camera-height or --ground-to-camera, not both")
+        try:
+            T_ground_cam = transform_from_translation_quaternion(args.ground_to_camera[:3], args.ground_to_camera[3:])
+        except InvalidTransformError as error:
+            raise ConfigError(f"--ground-to-camera: {error}") from None
     calibration = None
     if args.calibration is not None:
         from nocal_ros.lens import CameraCalibration
@@ -116,6 +130,12 @@ def run(args: argparse.Namespace) -> int:
         distortion_model=args.distortion_model, method=args.method, calibration=calibration,
         synchronous_mapping=True, record_trajectory=not args.no_final, camera_height=args.camera_height,
     )
+    if T_ground_cam is not None:
+        try:
+            estimator.set_ground_to_camera(T_ground_cam)
+        except NocalError as error:
+            estimator.close()
+            raise ConfigError(f"--ground-to-camera: {error}") from None
     result = replay_bag(
         args.bag, args.out, estimator,
         image_topic=args.image_topic, gt_topic=args.gt_topic, camera_info_topic=args.camera_info_topic,

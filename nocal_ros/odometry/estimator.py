@@ -268,6 +268,7 @@ class OdometryEstimator:
             the map (:func:`~nocal_ros.odometry.scale.fit_ground_scale`) instead of the pose head. The
             ground's normal is expected near ``base_frame``'s -z (REP 103) through ``T_base_cam``, or near
             the image's down direction where ``T_base_cam`` is the identity (the camera is the base).
+            :meth:`set_ground_to_camera` gives both from a frame on the ground instead.
 
     Thread-safe: :meth:`process`, :meth:`reset` and :meth:`reload` may be called from different threads.
     """
@@ -313,6 +314,7 @@ class OdometryEstimator:
         if camera_height is not None and not (np.isfinite(camera_height) and camera_height > 0):
             raise NocalError(f"the camera height must be a positive number of metres, got {camera_height!r}")
         self.camera_height = None if camera_height is None else float(camera_height)
+        self._down_cam: np.ndarray | None = None  # the ground's down in the camera frame, where a ground frame gave it
         #: What made each map of :meth:`final_trajectory` metric (map id -> ``"arm"``, ``"ground"``, or the
         #: live source of its last published scale).
         self.final_scale_sources: dict[int, str] = {}
@@ -551,6 +553,24 @@ class OdometryEstimator:
         """Block until local mapping has taken every submitted keyframe; False on timeout."""
         vo = self._vo
         return True if vo is None else vo.mapping.wait(timeout)
+
+    def set_ground_to_camera(self, T_ground_cam: np.ndarray) -> None:
+        """The camera's static pose in a frame on the ground with its z up (REP 120's ``base_footprint``, a
+        robot's URDF): the camera's height above the ground is its z there, and the ground's normal is that
+        frame's z, for the ground-plane scale. Replaces ``camera_height`` and the down direction it takes
+        from ``T_base_cam`` or the image: a camera pitched more than the plane fit's tilt
+        (:data:`~nocal_ros.odometry.scale.GROUND_MAX_TILT_DEG`) towards the floor finds no floor through
+        the image's down."""
+        T = np.asarray(T_ground_cam, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"T_ground_cam must be a finite 4x4 transform, got {T.shape}")
+        height = float(T[2, 3])
+        if not height > 0:
+            raise NocalError(f"the camera is {height:.3f} m above the ground frame's z = 0: the ground frame must "
+                             "lie on the ground beneath the camera, z up (REP 120's base_footprint)")
+        with self._lock:
+            self.camera_height = height
+            self._down_cam = T[:3, :3].T @ np.array([0.0, 0.0, -1.0])
 
     def add_arm_pose(self, stamp_ns: int, T_base_cam: np.ndarray) -> None:
         """The camera optical frame's pose in the arm's base frame at ``stamp_ns`` (hand-eye applied).
@@ -994,7 +1014,9 @@ class OdometryEstimator:
             ids = np.unique(np.concatenate([kf.ids for kf in keyframes])).tolist()
             points = np.array([local_map.landmarks[i] for i in ids if i in local_map.landmarks]).reshape(-1, 3)
             poses = np.array([kf.T_w_c for kf in keyframes])
-        if np.allclose(self._T_base_cam, np.eye(4)):
+        if self._down_cam is not None:
+            down_cam = self._down_cam
+        elif np.allclose(self._T_base_cam, np.eye(4)):
             down_cam = np.array([0.0, 1.0, 0.0])  # the camera is the base: the image's down
         else:
             down_cam = self._T_base_cam[:3, :3].T @ np.array([0.0, 0.0, -1.0])

@@ -25,6 +25,9 @@ Parameters (see config/odometry.yaml):
     camera_name, camera_info_url: camera_info_manager's: the online camera starts from the calibration
         at the URL (default ``file://${ROS_HOME}/camera_info/${NAME}.yaml``) when it exists, instead of the
         learnt camera; ``~/set_camera_info`` and ``~/save_calibration`` write it (read once at start).
+    camera_height: m of the camera above the floor or road (0 = unknown), or ground_frame: a frame on the
+        ground beneath the camera, z up (REP 120's base_footprint), whose TF to the camera gives its height
+        and the ground's normal: the scale from the ground plane where no arm poses fit
     arm_pose_source: none | pose (PoseStamped on ``arm_pose``) | tf (``arm_base_frame -> arm_tool_frame``);
         T_tool_cam: hand-eye, row-major 4x4;  arm_tf_wait: seconds of images a frame waits for its TF pose
     queue_size: subscription depth (sensor-data QoS, best effort);  latest_only: true = drop stale
@@ -104,6 +107,7 @@ PARAMETERS: dict[str, Any] = {
     "camera_name": "camera",
     "camera_info_url": "",
     "camera_height": 0.0,
+    "ground_frame": "",
     "arm_pose_source": "none",
     "arm_base_frame": "base",
     "arm_tool_frame": "tool",
@@ -143,6 +147,9 @@ class OdometryNode(Node):
             raise ConfigError(f"arm_pose_source must be one of {', '.join(ARM_POSE_SOURCES)}, not {self.arm_pose_source!r}")
         self.arm_base_frame, self.arm_tool_frame = str(p["arm_base_frame"]), str(p["arm_tool_frame"])
         self.T_tool_cam = hand_eye_matrix(p["T_tool_cam"])
+        self.ground_frame = str(p["ground_frame"])
+        if self.ground_frame and float(p["camera_height"]) > 0:
+            raise ConfigError("set camera_height or ground_frame, not both: the ground frame gives the height")
         calibration, self.calibration_path = load_calibration(self.camera_info_url, self.camera_name)
 
         self.estimator = OdometryEstimator(
@@ -200,6 +207,7 @@ class OdometryNode(Node):
         self.health = OdometryHealth(max_delay_s=float(p["max_delay"]), max_age_s=float(p["max_age"]))
         self._pending_arm = PendingStamps(max_wait_s=float(p["arm_tf_wait"]))
         self._T_base_cam: dict[str, np.ndarray] = {}  # camera frame -> static mounting, once found
+        self._ground_camera_frame = ""  # the camera frame the ground frame's mounting was found for
         self._reset_requested = threading.Event()
         self.time_jumps = 0  # clock jumps the worker has finished resetting for
         self._waiting_for_tf = 0
@@ -341,6 +349,27 @@ class OdometryNode(Node):
             self._T_base_cam[camera_frame] = T
         return T
 
+    def _find_ground(self, camera_frame: str) -> None:
+        """The camera's height and the ground's normal from TF ``ground_frame -> camera frame`` (static, so
+        looked up until found). Frames go on meanwhile, on the scale the estimator has without it."""
+        try:
+            transform = self.tf_buffer.lookup_transform(self.ground_frame, camera_frame, Time(),
+                                                        timeout=Duration(seconds=self.tf_timeout))
+            self.estimator.set_ground_to_camera(transform_msg_to_matrix(transform.transform))
+        except TransformException as error:
+            self._last_error = f"waiting for TF {self.ground_frame} -> {camera_frame}"
+            self.get_logger().warning(f"waiting for TF {self.ground_frame} -> {camera_frame} ({error}): no "
+                                      "ground-plane scale until it exists", throttle_duration_sec=5.0)
+            return
+        except (InvalidTransformError, NocalError) as error:
+            self._last_error = f"ground_frame {self.ground_frame}: {error}"
+            self.get_logger().error(f"ground_frame {self.ground_frame} -> {camera_frame}: {error}; no ground-plane "
+                                    "scale", throttle_duration_sec=5.0)
+            return
+        self._ground_camera_frame = camera_frame
+        self.get_logger().info(f"camera {self.estimator.camera_height:.3f} m above {self.ground_frame}: the scale "
+                               "comes from the ground plane where no arm poses fit")
+
     def _arm_pose_at(self, stamp_ns: int) -> np.ndarray | None:
         """``T_base_cam`` of the arm at ``stamp_ns`` from TF, or None while TF cannot say yet."""
         try:
@@ -355,6 +384,8 @@ class OdometryNode(Node):
         if T_base_cam is None:
             return
         self.estimator.set_base_to_camera(T_base_cam)
+        if self.ground_frame and self._ground_camera_frame != camera_frame:
+            self._find_ground(camera_frame)
         if isinstance(msg, CompressedImage):
             rgb, encoding = decode_compressed_image(msg), str(msg.format)
         else:
@@ -409,6 +440,8 @@ class OdometryNode(Node):
             **{f"mapping_{k}": v for k, v in self.estimator.mapping_status().items()},
             "calibration_file": str(self.calibration_path),
             "camera_info_failures": self._camera_info_failures,
+            "camera_height_m": self.estimator.camera_height or 0.0,
+            "ground_frame": self.ground_frame,
             "arm_pose_source": self.arm_pose_source,
             "arm_poses_received": self._arm_poses_received,
             "arm_poses_rejected": self._arm_poses_rejected,
