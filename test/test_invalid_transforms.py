@@ -103,7 +103,7 @@ def test_odometry_refuses_a_zero_quaternion_mounting(tmp_path, small_bag, capsys
 @pytest.mark.parametrize("mounting, message", [
     (["0", "0", "1.2", "0", "0", "0", "0"], "quaternion"),
     (["0", "0", "-0.4", "0", "0", "0", "1"], "ground frame"),
-    (["0", "0", "1.2", "0", "0", "0", "1", "--camera-height", "1.2"], "not both"),
+    (["0", "0", "1.2", "0", "0", "0", "1", "--camera-height", "1.2"], "give one of"),
 ], ids=["zero quaternion", "ground above the camera", "with --camera-height"])
 def test_odometry_refuses_a_ground_frame_it_cannot_use(tmp_path, small_bag, capsys, mounting, message):
     out = tmp_path / "out"

@@ -89,6 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
              "base_footprint): the camera's height (Z) and the ground's normal for the ground-plane scale, "
              "instead of --camera-height",
     )
+    parser.add_argument("--ground-frame", default="", metavar="FRAME",
+                        help="a frame on the ground beneath the camera, z up (REP 120's base_footprint), in the bag's "
+                             "/tf_static: --ground-to-camera read from there")
     parser.add_argument("--no-final", action="store_true",
                         help="skip trajectory_final.tum and calibration_final.yaml (the replay then keeps no "
                              "per-frame tracks: about 7 KB per frame, 0.7 GB per hour of a 30 Hz camera at 300 tracks)")
@@ -113,9 +116,21 @@ def run(args: argparse.Namespace) -> int:
         except InvalidTransformError as error:
             raise ConfigError(f"--base-to-camera: {error}") from None
     T_ground_cam = None
+    given = [name for name, value in (("--camera-height", args.camera_height is not None),
+                                      ("--ground-to-camera", bool(args.ground_to_camera)),
+                                      ("--ground-frame", bool(args.ground_frame))) if value]
+    if len(given) > 1:
+        raise ConfigError(f"give one of --camera-height, --ground-to-camera and --ground-frame, not {' and '.join(given)}")
+    if args.ground_frame:
+        from nocal_ros.data.bags import camera_mounting
+
+        try:
+            T_ground_cam, camera_frame = camera_mounting(args.bag, args.ground_frame, args.image_topic)
+        except BagError as error:
+            raise ConfigError(f"--ground-frame: {error}") from None
+        log.info("the camera (%s) is %.3f m above %s in the bag's /tf_static", camera_frame, T_ground_cam[2, 3],
+                 args.ground_frame)
     if args.ground_to_camera:
-        if args.camera_height is not None:
-            raise ConfigError("give --camera-height or --ground-to-camera, not both")
         try:
             T_ground_cam = transform_from_translation_quaternion(args.ground_to_camera[:3], args.ground_to_camera[3:])
         except InvalidTransformError as error:
@@ -135,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
             estimator.set_ground_to_camera(T_ground_cam)
         except NocalError as error:
             estimator.close()
-            raise ConfigError(f"--ground-to-camera: {error}") from None
+            raise ConfigError(f"{'--ground-frame' if args.ground_frame else '--ground-to-camera'}: {error}") from None
     result = replay_bag(
         args.bag, args.out, estimator,
         image_topic=args.image_topic, gt_topic=args.gt_topic, camera_info_topic=args.camera_info_topic,

@@ -671,6 +671,31 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return {name: (str(info.msgtype), int(info.msgcount)) for name, info in reader.topics.items()}
 
 
+def camera_mounting(path: str | Path, parent: str, image_topic: str) -> tuple[np.ndarray, str]:
+    """``(T_parent_cam, camera frame)``: the pose of the images' frame (the first image's frame id) in
+    ``parent``, from the bag's ``/tf_static`` through intermediate frames (a robot's URDF, as
+    robot_state_publisher latches it). BagError where the bag does not connect them."""
+    path = _check_path(path)
+    tf = TfBuffer()
+    with _open_bag(path) as reader:
+        image_connections = _image_connections(reader, path, image_topic)
+        camera_frame = None
+        for connection, _, raw in reader.messages(connections=image_connections):
+            camera_frame = reader.deserialize(raw, connection.msgtype).header.frame_id.lstrip("/")
+            break
+        if camera_frame is None:
+            raise BagError(f"{path}: no usable frames: topic {image_topic} has no messages")
+        static = [c for c in reader.connections if c.topic == "/tf_static" and c.msgtype == TF_TYPE]
+        for connection, _, raw in reader.messages(connections=static):
+            tf.add(reader.deserialize(raw, connection.msgtype), is_static=True)
+    chain = tf.chain(parent, camera_frame)
+    T = None if chain is None else tf.lookup(chain, 0, 0)
+    if T is None:
+        raise BagError(f"{path}: /tf_static does not connect {parent} to the images' frame {camera_frame!r} "
+                       f"(its edges: {', '.join(tf.edges()) or 'none'})")
+    return T, camera_frame
+
+
 def _topic_list(reader: Any) -> str:
     return ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(reader.topics.items())) or "none"
 
