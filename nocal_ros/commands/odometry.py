@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--base-frame", default="", help="child frame of /odom (default: the images' frame id)")
     parser.add_argument(
         "--base-to-camera", type=arg.finite_float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
-        help="static pose of the camera optical frame in the base frame (default: identity)",
+        help="static pose of the camera optical frame in the base frame (default: from the bag's /tf_static "
+             "where it connects --base-frame to the images' frame, as the node's TF; else identity)",
     )
     parser.add_argument("--frame-period", type=arg.positive_float, default=None, help="camera frame period in s (default: from stamps)")
     parser.add_argument("--method", default="vo", choices=("vo", "pose_head"),
@@ -115,6 +116,13 @@ def run(args: argparse.Namespace) -> int:
             T_base_cam = transform_from_translation_quaternion(args.base_to_camera[:3], args.base_to_camera[3:])
         except InvalidTransformError as error:
             raise ConfigError(f"--base-to-camera: {error}") from None
+    elif args.base_frame:
+        from nocal_ros.data.bags import camera_mounting
+
+        T_base_cam, camera_frame = camera_mounting(args.bag, args.base_frame, args.image_topic, required=False)
+        if T_base_cam is None and camera_frame != args.base_frame:
+            log.warning("the bag's /tf_static does not connect %s to the images' frame %s: the camera is taken as "
+                        "the base (give --base-to-camera)", args.base_frame, camera_frame)
     T_ground_cam = None
     given = [name for name, value in (("--camera-height", args.camera_height is not None),
                                       ("--ground-to-camera", bool(args.ground_to_camera)),

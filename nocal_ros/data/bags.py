@@ -671,10 +671,12 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return {name: (str(info.msgtype), int(info.msgcount)) for name, info in reader.topics.items()}
 
 
-def camera_mounting(path: str | Path, parent: str, image_topic: str) -> tuple[np.ndarray, str]:
+def camera_mounting(path: str | Path, parent: str, image_topic: str,
+                    required: bool = True) -> tuple[np.ndarray | None, str]:
     """``(T_parent_cam, camera frame)``: the pose of the images' frame (the first image's frame id) in
     ``parent``, from the bag's ``/tf_static`` through intermediate frames (a robot's URDF, as
-    robot_state_publisher latches it). BagError where the bag does not connect them."""
+    robot_state_publisher latches it). Where the bag does not connect them: BagError, or ``None`` for
+    the pose when not ``required``."""
     path = _check_path(path)
     tf = TfBuffer()
     with _open_bag(path) as reader:
@@ -690,7 +692,7 @@ def camera_mounting(path: str | Path, parent: str, image_topic: str) -> tuple[np
             tf.add(reader.deserialize(raw, connection.msgtype), is_static=True)
     chain = tf.chain(parent, camera_frame)
     T = None if chain is None else tf.lookup(chain, 0, 0)
-    if T is None:
+    if T is None and required:
         raise BagError(f"{path}: /tf_static does not connect {parent} to the images' frame {camera_frame!r} "
                        f"(its edges: {', '.join(tf.edges()) or 'none'})")
     return T, camera_frame

@@ -1,6 +1,7 @@
-"""The camera's height and the ground's normal from a frame on the ground in a bag's ``/tf_static``
-(REP 120's base_footprint, as robot_state_publisher latches a URDF): read by ``nocal odometry
---ground-frame``, the replay's scale comes from the ground plane. Real bags, written and read by rosbags."""
+"""Static mountings from a bag's ``/tf_static`` (a robot's URDF, as robot_state_publisher latches it), as
+the odometry node takes them from TF: ``nocal odometry --ground-frame`` (REP 120's base_footprint: the
+camera's height and the ground's normal, so the scale comes from the ground plane) and ``--base-frame``
+(the base's odometry through the camera's mounting). Real bags, written and read by rosbags."""
 
 from __future__ import annotations
 
@@ -96,3 +97,27 @@ def test_a_ground_frame_the_bag_cannot_give_is_one_line(tmp_path, capsys, extra,
     assert len(lines) == 1 and "Traceback" not in err
     assert re.search(message, lines[0]), lines[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_base_frame_takes_its_mounting_from_the_bags_tf_static_as_the_node_does_from_tf(tmp_path, caplog):
+    """``--base-frame base_link`` on a bag whose URDF gives base_link -> camera_optical publishes the base's
+    odometry through that mounting, as ``--base-to-camera`` with the same numbers does; a base frame the
+    bag does not connect keeps the camera as the base, with a warning."""
+    from nocal_ros.geometry import matrix_to_quaternion
+
+    sequence = render_sequence(CAMERA, 6, seed=2, split="test")
+    T_base_cam = make_transform(so3_exp(np.array([-1.2, 0.1, -1.5])), np.array([0.1, 0.0, 0.8]))
+    bag = write_robot_bag(tmp_path / "robot.mcap", sequence, T_base_cam)
+    numbers = [str(v) for v in (*T_base_cam[:3, 3], *matrix_to_quaternion(T_base_cam[:3, :3]))]
+    runs = {"tf_static": ["--base-frame", "base_link"], "typed": ["--base-frame", "base_link", "--base-to-camera", *numbers],
+            "camera": [], "unconnected": ["--base-frame", "nowhere"]}
+    trajectories = {}
+    for name, extra in runs.items():
+        out = tmp_path / name
+        assert main(["odometry", str(bag), "--out", str(out), "--threads", "1", "--no-progress", "--no-final", *extra]) == 0
+        trajectories[name] = np.loadtxt(out / "trajectory.tum")
+    np.testing.assert_allclose(trajectories["tf_static"], trajectories["typed"], atol=1e-9)
+    np.testing.assert_array_equal(trajectories["unconnected"], trajectories["camera"])
+    moved = np.linalg.norm(trajectories["camera"][-1, 1:4])
+    assert moved > 0 and np.abs(trajectories["tf_static"][:, 1:4] - trajectories["camera"][:, 1:4]).max() > 0.1 * moved
+    assert "does not connect nowhere" in caplog.text
