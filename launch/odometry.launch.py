@@ -4,6 +4,7 @@
     ros2 launch nocal_ros odometry.launch.py image:=/cam/image_raw model_path:=~/.ros/nocal_ros/models
     ros2 launch nocal_ros odometry.launch.py camera_info_url:=file:///data/wrist.yaml use_sim_time:=true
     ros2 launch nocal_ros odometry.launch.py arm_pose_source:=pose arm_pose:=/arm/pose
+    ros2 launch nocal_ros odometry.launch.py ground_frame:=base_footprint    # metric scale from the floor
 
 The arguments below override the same parameters in params_file; the others come from params_file.
 """
@@ -31,6 +32,8 @@ def generate_launch_description() -> LaunchDescription:
                               description="calibration YAML (file:// or package://; '' = file://${ROS_HOME}/camera_info/${NAME}.yaml)"),
         DeclareLaunchArgument("arm_pose_source", default_value="none", description="none | pose | tf (arm poses for metric scale)"),
         DeclareLaunchArgument("arm_pose", default_value="/arm/pose", description="PoseStamped arm pose topic (arm_pose_source pose)"),
+        DeclareLaunchArgument("ground_frame", default_value="",
+                              description="a frame on the ground beneath the camera, z up (base_footprint): TF gives its height"),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="follow /clock (ros2 bag play --clock)"),
     ]
     node = Node(
@@ -47,6 +50,7 @@ def generate_launch_description() -> LaunchDescription:
                 "camera_name": ParameterValue(LaunchConfiguration("camera_name"), value_type=str),
                 "camera_info_url": ParameterValue(LaunchConfiguration("camera_info_url"), value_type=str),
                 "arm_pose_source": ParameterValue(LaunchConfiguration("arm_pose_source"), value_type=str),
+                "ground_frame": ParameterValue(LaunchConfiguration("ground_frame"), value_type=str),
                 "use_sim_time": ParameterValue(LaunchConfiguration("use_sim_time"), value_type=bool),
             },
         ],
