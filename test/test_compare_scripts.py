@@ -296,3 +296,25 @@ def test_dev_replays_runs_the_checkout_it_is_given_even_from_the_repository_root
                          capture_output=True, text=True, timeout=120, cwd=SCRIPTS.parents[1])
     assert run.returncode == 0, run.stdout + run.stderr
     assert (tmp_path / "out" / "heldout_160" / "ran").read_text() == str((checkout / "cli.py").resolve())
+
+
+def test_startup_steps_groups_the_steps_through_the_guess_and_finds_them_within_their_covariance(tmp_path, capsys):
+    """r160_207's camera (the f = width guess 85 % long), 16 frames: the steps tracked through the guess
+    on the pose head's scale are more than half a step off, and within their published covariance's
+    99 % bound (it knows no direction for them); every step is counted once."""
+    from nocal_ros.data.bags import write_sequence as write
+    from nocal_ros.data.synthetic import random_calibration, render_sequence
+
+    camera = random_calibration(np.random.default_rng([207, 7]), 160, 120)
+    bag = write(render_sequence(camera, 16, 207, split="test"), tmp_path / "r160_207.mcap")
+    script = load_script("startup_steps")
+    records = script.startup_steps(bag, 16)
+    assert [r["frame"] for r in records] == list(range(1, 16))
+    through = [r for r in records if r["guess"] and r["scale"] in ("pose_head", "none") and r["motion"] in ("vo", "two_view")]
+    assert len(through) >= 5 and any(not r["guess"] for r in records)
+    assert np.sqrt(np.mean([r["error_steps"] ** 2 for r in through])) > 0.5
+    assert all(r["within_99"] for r in through)
+    rows = script.summary(records)
+    assert sum(row["steps"] for row in rows) == 15
+    assert script.main([str(bag), "--frames", "16"]) == 0
+    assert "camera  scale      steps" in capsys.readouterr().out
