@@ -76,6 +76,7 @@ def test_a_replay_with_a_ground_frame_is_metric_through_the_ground_plane(rendere
     report = json.loads((out / "report.json").read_text())
     print({k: report[k] for k in ("scale_source",)}, report["final_trajectory"]["scale_source"],
           report["final_trajectory"]["ape_se3"]["rmse"], report["final_trajectory"]["ape_sim3"]["scale"])
+    assert report["camera_height_m"] == pytest.approx(float(rendered.ground_truth[:, 2, 3].mean()), abs=1e-9)
     assert report["final_trajectory"]["scale_source"] == {"ground": 1}
     assert report["scale_source"].get("ground", 0) > 40
     assert report["final_trajectory"]["ape_se3"]["rmse"] < 0.015

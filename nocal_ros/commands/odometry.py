@@ -608,6 +608,8 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report["scale_source"] = {source: int(sum(s == source for s in scale_sources))
                                   for source in sorted(set(scale_sources))}
         report["arm_poses"] = int(replay.extras.get("arm_poses", 0))
+    if getattr(estimator, "camera_height", None) is not None:
+        report["camera_height_m"] = float(estimator.camera_height)  # the ground-plane scale's, as given
     if replay.extras.get("calibration_status"):
         report["calibration_status"] = replay.extras["calibration_status"]
     history = replay.extras.get("camera_history") or []
