@@ -103,6 +103,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _mountings(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(T_base_cam, T_ground_cam)`` from the command line, or from the bag's ``/tf_static`` for
+    ``--base-frame`` (where it connects the frames) and ``--ground-frame``; None where not given."""
+    from nocal_ros.data.bags import camera_mounting
+
+    def typed(option: str, numbers: list[float]) -> np.ndarray:
+        try:
+            return transform_from_translation_quaternion(numbers[:3], numbers[3:])
+        except InvalidTransformError as error:
+            raise ConfigError(f"{option}: {error}") from None
+
+    T_base_cam = None
+    if args.base_to_camera:
+        T_base_cam = typed("--base-to-camera", args.base_to_camera)
+    elif args.base_frame:
+        T_base_cam, camera_frame = camera_mounting(args.bag, args.base_frame, args.image_topic, required=False)
+        if T_base_cam is None and camera_frame != args.base_frame:
+            log.warning("the bag's /tf_static does not connect %s to the images' frame %s: the camera is taken as "
+                        "the base (give --base-to-camera)", args.base_frame, camera_frame)
+    given = [name for name, value in (("--camera-height", args.camera_height is not None),
+                                      ("--ground-to-camera", bool(args.ground_to_camera)),
+                                      ("--ground-frame", bool(args.ground_frame))) if value]
+    if len(given) > 1:
+        raise ConfigError(f"give one of --camera-height, --ground-to-camera and --ground-frame, not {' and '.join(given)}")
+    T_ground_cam = None
+    if args.ground_to_camera:
+        T_ground_cam = typed("--ground-to-camera", args.ground_to_camera)
+    elif args.ground_frame:
+        try:
+            T_ground_cam, camera_frame = camera_mounting(args.bag, args.ground_frame, args.image_topic)
+        except BagError as error:
+            raise ConfigError(f"--ground-frame: {error}") from None
+        log.info("the camera (%s) is %.3f m above %s in the bag's /tf_static", camera_frame, T_ground_cam[2, 3],
+                 args.ground_frame)
+    return T_base_cam, T_ground_cam
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -110,39 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    T_base_cam = None
-    if args.base_to_camera:
-        try:
-            T_base_cam = transform_from_translation_quaternion(args.base_to_camera[:3], args.base_to_camera[3:])
-        except InvalidTransformError as error:
-            raise ConfigError(f"--base-to-camera: {error}") from None
-    elif args.base_frame:
-        from nocal_ros.data.bags import camera_mounting
-
-        T_base_cam, camera_frame = camera_mounting(args.bag, args.base_frame, args.image_topic, required=False)
-        if T_base_cam is None and camera_frame != args.base_frame:
-            log.warning("the bag's /tf_static does not connect %s to the images' frame %s: the camera is taken as "
-                        "the base (give --base-to-camera)", args.base_frame, camera_frame)
-    T_ground_cam = None
-    given = [name for name, value in (("--camera-height", args.camera_height is not None),
-                                      ("--ground-to-camera", bool(args.ground_to_camera)),
-                                      ("--ground-frame", bool(args.ground_frame))) if value]
-    if len(given) > 1:
-        raise ConfigError(f"give one of --camera-height, --ground-to-camera and --ground-frame, not {' and '.join(given)}")
-    if args.ground_frame:
-        from nocal_ros.data.bags import camera_mounting
-
-        try:
-            T_ground_cam, camera_frame = camera_mounting(args.bag, args.ground_frame, args.image_topic)
-        except BagError as error:
-            raise ConfigError(f"--ground-frame: {error}") from None
-        log.info("the camera (%s) is %.3f m above %s in the bag's /tf_static", camera_frame, T_ground_cam[2, 3],
-                 args.ground_frame)
-    if args.ground_to_camera:
-        try:
-            T_ground_cam = transform_from_translation_quaternion(args.ground_to_camera[:3], args.ground_to_camera[3:])
-        except InvalidTransformError as error:
-            raise ConfigError(f"--ground-to-camera: {error}") from None
+    T_base_cam, T_ground_cam = _mountings(args)
     calibration = None
     if args.calibration is not None:
         from nocal_ros.lens import CameraCalibration
