@@ -180,17 +180,37 @@ def _newton_step(x, residual, D, model: str):
     return np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1) / det[:, None]
 
 
-def _newton_undistort(target, D, model: str):
+def _polynomial_newton_step(x, target, D, model: str):
+    """:func:`_newton_step` on ``distort(x) - target``, the radial factor evaluated once for both (the
+    same operations, so the same bits, at about half the cost)."""
+    px, py = x[:, 0], x[:, 1]
+    s = px * px + py * py
+    radial, d_radial = _radial_and_derivative(s, D, model)
+    p1, p2 = D[2], D[3]
+    rx = px * radial + 2 * p1 * px * py + p2 * (s + 2 * px * px) - target[:, 0]
+    ry = py * radial + p1 * (s + 2 * py * py) + 2 * p2 * px * py - target[:, 1]
+    j00 = radial + 2 * px * px * d_radial + 2 * p1 * py + 6 * p2 * px
+    j01 = 2 * px * py * d_radial + 2 * p1 * px + 2 * p2 * py
+    j11 = radial + 2 * py * py * d_radial + 6 * p1 * py + 2 * p2 * px
+    det = j00 * j11 - j01 * j01
+    det = np.where(np.abs(det) > 1e-300, det, 1.0)
+    return np.stack((j11 * rx - j01 * ry, -j01 * rx + j00 * ry), -1) / det[:, None]
+
+
+def _newton_undistort(target, D, model: str, checked: bool = False):
     """Newton on ``distort(x) = target`` for float64 numpy points ``(N, 2)``.
 
     First plain Newton steps on every point at once; the points that did not converge to a root inside
     the lens's fold that way are solved again with backtracking (:func:`_newton_undistort_careful`).
     Inside the fold the root is unique, so both reach the same one, and the plain steps take about half
     the careful solve's time (the VO undistorts every frame's tracks; BENCHMARKS.md).
+
+    ``checked``: the result of :func:`_check_undistorted` (NaN where no imaged root), checking only the
+    points the careful solve took: the others passed a stricter test here already.
     """
     x = target.copy()
     for _ in range(_UNDISTORT_PLAIN_ITERATIONS):
-        step = _newton_step(x, distort_normalised(x, D, model) - target, D, model)
+        step = _polynomial_newton_step(x, target, D, model)
         x = x - step
         if not (np.abs(step) > 1e-9).any():  # quadratic: the next residual is far below 1e-14 (NaN: careful solve)
             break
@@ -200,6 +220,8 @@ def _newton_undistort(target, D, model: str):
     if not solved.all():
         rest = np.flatnonzero(~solved)
         x[rest] = _newton_undistort_careful(target[rest], D, model)
+        if checked:
+            x[rest] = _check_undistorted(x[rest], target[rest], D, model)
     return x
 
 
@@ -296,21 +318,27 @@ def _undistort_polynomial(xy_d, D, model: str):
         return xp.where(ok[..., None], x, xp.full_like(x, float("nan")))
     shape = xy_d.shape
     flat = np.asarray(xy_d, dtype=np.float64).reshape(-1, 2)
-    return _check_undistorted(_newton_undistort(flat, D, model), flat, D, model).reshape(shape)
+    return _newton_undistort(flat, D, model, checked=True).reshape(shape)
 
 
 def _imaged_roots(x, target, D, model: str, max_squared_residual: float):
     """Which points ``x`` solve ``distort(x) = target`` to ``max_squared_residual`` where the lens images
-    them: before the fold (Jacobian det > 0)."""
-    residual = distort_normalised(x, D, model) - target
-    j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
-    s = (x**2).sum(-1)
+    them: before the fold (Jacobian det > 0). The polynomial models only."""
+    px, py = x[:, 0], x[:, 1]
+    s = px * px + py * py
     radial, d_radial = _radial_and_derivative(s, D, model)
+    p1, p2 = D[2], D[3]
+    # distort_normalised's and _distortion_jacobian's expressions, the radial factor evaluated once
+    rx = px * radial + 2 * p1 * px * py + p2 * (s + 2 * px * px) - target[:, 0]
+    ry = py * radial + p1 * (s + 2 * py * py) + 2 * p2 * px * py - target[:, 1]
+    j00 = radial + 2 * px * px * d_radial + 2 * p1 * py + 6 * p2 * px
+    j01 = 2 * px * py * d_radial + 2 * p1 * px + 2 * p2 * py
+    j11 = radial + 2 * py * py * d_radial + 6 * p1 * py + 2 * p2 * px
     # Past the fold r_d(r) = r R(r^2) turns back (R + 2 s R' <= 0), and further out R < 0 mirrors
     # points through the centre; roots there satisfy the equation but are not what the lens images.
     return (
-        ((residual**2).sum(-1) <= max_squared_residual)
-        & ((j00 * j11 - j01 * j10) > 0)
+        (rx * rx + ry * ry <= max_squared_residual)
+        & ((j00 * j11 - j01 * j01) > 0)
         & (radial > 0)
         & (radial + 2 * s * d_radial > 0)
         & (s < _first_fold(D, model))  # a root where the curve rises again, past a fold, is no image either
