@@ -11,8 +11,8 @@ import re
 import numpy as np
 import pytest
 
-from nocal_ros.cli import main
-from nocal_ros.data.bags import BagWriter, camera_mounting
+from nocal_ros.cli import build_parser, main
+from nocal_ros.data.bags import BagWriter, camera_mounting, camera_mountings
 from nocal_ros.data.synthetic import render_sequence
 from nocal_ros.errors import BagError
 from nocal_ros.geometry import invert_transform, make_transform, so3_exp
@@ -63,6 +63,30 @@ def test_the_mounting_is_composed_through_the_urdfs_frames_and_refused_where_unc
     lone = write_robot_bag(tmp_path / "lone.mcap", sequence, T_base_cam, edges=False)
     with pytest.raises(BagError, match="does not connect base_footprint.*base_link->camera_optical"):
         camera_mounting(lone, "base_footprint", "/camera/image_raw")
+
+
+def test_both_mountings_come_from_one_read_of_the_bag(tmp_path, monkeypatch):
+    """``--base-frame`` and ``--ground-frame`` together: the bag's first image and /tf_static are read once,
+    and each mounting is what a read of its own gives."""
+    from nocal_ros.commands import odometry
+    from nocal_ros.data import bags
+
+    sequence = render_sequence(CAMERA, 2, seed=1, split="test")
+    T_base_cam = make_transform(so3_exp(np.array([-1.2, 0.1, -1.5])), np.array([0.1, 0.0, 0.8]))
+    bag = write_robot_bag(tmp_path / "robot.mcap", sequence, T_base_cam)
+    both = camera_mountings(bag, ["base_link", "base_footprint", "nowhere"], "/camera/image_raw")
+    assert both.camera_frame == "camera_optical" and both.poses["nowhere"] is None
+    for parent in ("base_link", "base_footprint"):
+        np.testing.assert_array_equal(both.poses[parent], camera_mounting(bag, parent, "/camera/image_raw")[0])
+    opened = []
+    real_open = bags._open_bag
+    monkeypatch.setattr(bags, "_open_bag", lambda path: opened.append(path) or real_open(path))
+    args = build_parser("odometry").parse_args(["odometry", str(bag), "--out", str(tmp_path / "out"),
+                                                "--base-frame", "base_link", "--ground-frame", "base_footprint"])
+    T_base, T_ground = odometry._mountings(args)
+    assert len(opened) == 1
+    np.testing.assert_array_equal(T_base, both.poses["base_link"])
+    np.testing.assert_array_equal(T_ground, both.poses["base_footprint"])
 
 
 def test_a_replay_with_a_ground_frame_is_metric_through_the_ground_plane(rendered, tmp_path):

@@ -106,7 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _mountings(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(T_base_cam, T_ground_cam)`` from the command line, or from the bag's ``/tf_static`` for
     ``--base-frame`` (where it connects the frames) and ``--ground-frame``; None where not given."""
-    from nocal_ros.data.bags import camera_mounting
+    from nocal_ros.data.bags import camera_mountings
 
     def typed(option: str, numbers: list[float]) -> np.ndarray:
         try:
@@ -114,29 +114,39 @@ def _mountings(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndarray 
         except InvalidTransformError as error:
             raise ConfigError(f"{option}: {error}") from None
 
-    T_base_cam = None
-    if args.base_to_camera:
-        T_base_cam = typed("--base-to-camera", args.base_to_camera)
-    elif args.base_frame:
-        T_base_cam, camera_frame = camera_mounting(args.bag, args.base_frame, args.image_topic, required=False)
-        if T_base_cam is None and camera_frame != args.base_frame:
-            log.warning("the bag's /tf_static does not connect %s to the images' frame %s: the camera is taken as "
-                        "the base (give --base-to-camera)", args.base_frame, camera_frame)
     given = [name for name, value in (("--camera-height", args.camera_height is not None),
                                       ("--ground-to-camera", bool(args.ground_to_camera)),
                                       ("--ground-frame", bool(args.ground_frame))) if value]
     if len(given) > 1:
         raise ConfigError(f"give one of --camera-height, --ground-to-camera and --ground-frame, not {' and '.join(given)}")
+    base_from_bag = args.base_frame if not args.base_to_camera else None
+    ground_from_bag = args.ground_frame if not args.ground_to_camera else None
+    mountings = None
+    if base_from_bag or ground_from_bag:  # one read of the bag's first image and /tf_static for both
+        try:
+            mountings = camera_mountings(args.bag, [f for f in (base_from_bag, ground_from_bag) if f], args.image_topic)
+        except BagError as error:
+            if ground_from_bag:
+                raise ConfigError(f"--ground-frame: {error}") from None
+            raise
+
+    T_base_cam = None
+    if args.base_to_camera:
+        T_base_cam = typed("--base-to-camera", args.base_to_camera)
+    elif base_from_bag:
+        T_base_cam = mountings.poses[base_from_bag]
+        if T_base_cam is None and mountings.camera_frame != base_from_bag:
+            log.warning("the bag's /tf_static does not connect %s to the images' frame %s: the camera is taken as "
+                        "the base (give --base-to-camera)", base_from_bag, mountings.camera_frame)
     T_ground_cam = None
     if args.ground_to_camera:
         T_ground_cam = typed("--ground-to-camera", args.ground_to_camera)
-    elif args.ground_frame:
-        try:
-            T_ground_cam, camera_frame = camera_mounting(args.bag, args.ground_frame, args.image_topic)
-        except BagError as error:
-            raise ConfigError(f"--ground-frame: {error}") from None
-        log.info("the camera (%s) is %.3f m above %s in the bag's /tf_static", camera_frame, T_ground_cam[2, 3],
-                 args.ground_frame)
+    elif ground_from_bag:
+        T_ground_cam = mountings.poses[ground_from_bag]
+        if T_ground_cam is None:
+            raise ConfigError(f"--ground-frame: {mountings.unconnected(ground_from_bag)}")
+        log.info("the camera (%s) is %.3f m above %s in the bag's /tf_static", mountings.camera_frame,
+                 T_ground_cam[2, 3], ground_from_bag)
     return T_base_cam, T_ground_cam
 
 

@@ -22,6 +22,7 @@ import os
 import shutil
 import uuid
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -677,6 +678,31 @@ def camera_mounting(path: str | Path, parent: str, image_topic: str,
     ``parent``, from the bag's ``/tf_static`` through intermediate frames (a robot's URDF, as
     robot_state_publisher latches it). Where the bag does not connect them: BagError, or ``None`` for
     the pose when not ``required``."""
+    mountings = camera_mountings(path, [parent], image_topic)
+    if mountings.poses[parent] is None and required:
+        raise BagError(mountings.unconnected(parent))
+    return mountings.poses[parent], mountings.camera_frame
+
+
+@dataclass
+class CameraMountings:
+    """The images' frame, its pose ``T_parent_cam`` in each asked parent frame (None where the bag's
+    ``/tf_static`` does not connect them), and that tree's edges."""
+
+    path: Path
+    camera_frame: str
+    poses: dict[str, np.ndarray | None]
+    edges: list[str]
+
+    def unconnected(self, parent: str) -> str:
+        """The one-line error for a parent frame the bag does not connect to the camera."""
+        return (f"{self.path}: /tf_static does not connect {parent} to the images' frame {self.camera_frame!r} "
+                f"(its edges: {', '.join(self.edges) or 'none'})")
+
+
+def camera_mountings(path: str | Path, parents: Sequence[str], image_topic: str) -> CameraMountings:
+    """:func:`camera_mounting` for several parent frames from one read of the bag's first image and
+    ``/tf_static``."""
     path = _check_path(path)
     tf = TfBuffer()
     with _open_bag(path) as reader:
@@ -690,12 +716,11 @@ def camera_mounting(path: str | Path, parent: str, image_topic: str,
         static = [c for c in reader.connections if c.topic == "/tf_static" and c.msgtype == TF_TYPE]
         for connection, _, raw in reader.messages(connections=static):
             tf.add(reader.deserialize(raw, connection.msgtype), is_static=True)
-    chain = tf.chain(parent, camera_frame)
-    T = None if chain is None else tf.lookup(chain, 0, 0)
-    if T is None and required:
-        raise BagError(f"{path}: /tf_static does not connect {parent} to the images' frame {camera_frame!r} "
-                       f"(its edges: {', '.join(tf.edges()) or 'none'})")
-    return T, camera_frame
+    poses = {}
+    for parent in parents:
+        chain = tf.chain(parent, camera_frame)
+        poses[parent] = None if chain is None else tf.lookup(chain, 0, 0)
+    return CameraMountings(path, camera_frame, poses, list(tf.edges()))
 
 
 def _topic_list(reader: Any) -> str:
