@@ -180,9 +180,11 @@ def _newton_step(x, residual, D, model: str):
     return np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1) / det[:, None]
 
 
-def _polynomial_newton_step(x, target, D, model: str):
-    """:func:`_newton_step` on ``distort(x) - target``, the radial factor evaluated once for both (the
-    same operations, so the same bits, at about half the cost)."""
+def _residual_and_jacobian(x, target, D, model: str):
+    """``distort(x) - target`` and ``d distort / d x`` of the polynomial models for float64 numpy points
+    ``(N, 2)``, the radial factor evaluated once for both (:func:`distort_normalised`'s and
+    :func:`_distortion_jacobian`'s expressions, so the same bits at about half the cost). Returns
+    ``(rx, ry, j00, j01, j11, s, radial, d_radial)``; ``j10 = j01``."""
     px, py = x[:, 0], x[:, 1]
     s = px * px + py * py
     radial, d_radial = _radial_and_derivative(s, D, model)
@@ -192,6 +194,12 @@ def _polynomial_newton_step(x, target, D, model: str):
     j00 = radial + 2 * px * px * d_radial + 2 * p1 * py + 6 * p2 * px
     j01 = 2 * px * py * d_radial + 2 * p1 * px + 2 * p2 * py
     j11 = radial + 2 * py * py * d_radial + 6 * p1 * py + 2 * p2 * px
+    return rx, ry, j00, j01, j11, s, radial, d_radial
+
+
+def _polynomial_newton_step(x, target, D, model: str):
+    """:func:`_newton_step` on ``distort(x) - target``, from :func:`_residual_and_jacobian`."""
+    rx, ry, j00, j01, j11, _, _, _ = _residual_and_jacobian(x, target, D, model)
     det = j00 * j11 - j01 * j01
     det = np.where(np.abs(det) > 1e-300, det, 1.0)
     return np.stack((j11 * rx - j01 * ry, -j01 * rx + j00 * ry), -1) / det[:, None]
@@ -324,16 +332,7 @@ def _undistort_polynomial(xy_d, D, model: str):
 def _imaged_roots(x, target, D, model: str, max_squared_residual: float):
     """Which points ``x`` solve ``distort(x) = target`` to ``max_squared_residual`` where the lens images
     them: before the fold (Jacobian det > 0). The polynomial models only."""
-    px, py = x[:, 0], x[:, 1]
-    s = px * px + py * py
-    radial, d_radial = _radial_and_derivative(s, D, model)
-    p1, p2 = D[2], D[3]
-    # distort_normalised's and _distortion_jacobian's expressions, the radial factor evaluated once
-    rx = px * radial + 2 * p1 * px * py + p2 * (s + 2 * px * px) - target[:, 0]
-    ry = py * radial + p1 * (s + 2 * py * py) + 2 * p2 * px * py - target[:, 1]
-    j00 = radial + 2 * px * px * d_radial + 2 * p1 * py + 6 * p2 * px
-    j01 = 2 * px * py * d_radial + 2 * p1 * px + 2 * p2 * py
-    j11 = radial + 2 * py * py * d_radial + 6 * p1 * py + 2 * p2 * px
+    rx, ry, j00, j01, j11, s, radial, d_radial = _residual_and_jacobian(x, target, D, model)
     # Past the fold r_d(r) = r R(r^2) turns back (R + 2 s R' <= 0), and further out R < 0 mirrors
     # points through the centre; roots there satisfy the equation but are not what the lens images.
     return (

@@ -99,6 +99,34 @@ def test_fast_undistortion_finds_the_careful_solves_root_and_none_past_the_fold(
     assert found_past_fold < 0.001 * 400 * 200  # the careful solve's misses are rare
 
 
+def test_the_fused_newton_step_and_root_check_give_the_separate_formulas_bits():
+    """Undistortion evaluates the residual and the Jacobian together (the radial factor once): the same
+    bits as distort_normalised and _distortion_jacobian apart, NaN included, so replays repeat exactly;
+    and checking only the careful solve's points gives what checking every point gave."""
+    from nocal_ros.lens import (_check_undistorted, _distortion_jacobian, _first_fold, _imaged_roots,
+                                _newton_step, _newton_undistort, _polynomial_newton_step,
+                                _radial_and_derivative, distort_normalised)
+
+    rng = np.random.default_rng(5)
+    for trial in range(200):
+        model = ("plumb_bob", "rational_polynomial")[trial % 2]
+        D = rng.normal(0, [0.3, 0.3, 0.01, 0.01, 0.2, 0.3, 0.3, 0.2][: 5 if model == "plumb_bob" else 8])
+        x, target = rng.uniform(-1.5, 1.5, (100, 2)), rng.uniform(-1.5, 1.5, (100, 2))
+        x[0] = np.nan
+        separate = _newton_step(x, distort_normalised(x, D, model) - target, D, model)
+        np.testing.assert_array_equal(_polynomial_newton_step(x, target, D, model), separate)
+        residual = distort_normalised(x, D, model) - target
+        j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
+        s = (x**2).sum(-1)
+        radial, d_radial = _radial_and_derivative(s, D, model)
+        for tolerance in (1e-28, 1e-18, 1e-2):
+            expected = (((residual**2).sum(-1) <= tolerance) & (j00 * j11 - j01 * j10 > 0) & (radial > 0)
+                        & (radial + 2 * s * d_radial > 0) & (s < _first_fold(D, model)))
+            np.testing.assert_array_equal(_imaged_roots(x, target, D, model, tolerance), expected)
+        everywhere = _check_undistorted(_newton_undistort(target, D, model), target, D, model)
+        np.testing.assert_array_equal(_newton_undistort(target, D, model, checked=True), everywhere)
+
+
 @pytest.mark.parametrize("model", list(CAMERAS))
 def test_torch_matches_numpy_and_is_differentiable(model):
     camera = CAMERAS[model]
