@@ -58,7 +58,8 @@ Covariance (how it is derived)
     27 over 23 replays; with it 1.4 (docs/RESULTS.md). A step's length is also only as good as its
     scale (:func:`~nocal_ros.odometry.covariance.scale_step_covariance`, along the step): the map's
     scale's ``relative_std`` for a VO frame (the arm fit's least-squares spread, the ground plane's
-    :data:`~nocal_ros.odometry.scale.GROUND_SCALE_STD` or its fits' wider spread, the pose head's
+    :data:`~nocal_ros.odometry.scale.GROUND_SCALE_STD` or its fits' wider spread, wider while fewer than
+    three fits or only fits through the guess stand behind it, the pose head's
     :data:`~nocal_ros.odometry.scale.POSE_HEAD_SCALE_STD`), the pose head's where its length is used.
     Without it, a replay on the pose head's scale (heldout_160, x0.7) had 51 % of its steps' translation
     errors within the 99 % bound; with it all. A step measured through the guessed camera on the pose
@@ -119,7 +120,10 @@ from nocal_ros.odometry.covariance import (
 )
 from nocal_ros.odometry.pose_head import PoseModel, PoseRunner
 from nocal_ros.odometry.scale import (
+    FEW_GROUND_FITS_SCALE_STD,
     GROUND_SCALE_STD,
+    GUESS_GROUND_SCALE_STD,
+    MIN_GROUND_FITS_SPREAD,
     POSE_HEAD_SCALE_STD,
     UNKNOWN_SCALE_STD,
     ScaleEstimate,
@@ -411,7 +415,8 @@ class OdometryEstimator:
             self._anchor: np.ndarray | None = None  # T_odom_map of the current map
             self._anchor_map_id = -1
             self._scale = ScaleEstimate()
-            self._ground_fits: deque[float] = deque(maxlen=GROUND_FIT_HISTORY)  # metres per unit of the map as made
+            # (metres per unit of the map as made, made through the guessed camera) per live ground fit
+            self._ground_fits: deque[tuple[float, bool]] = deque(maxlen=GROUND_FIT_HISTORY)
             self._ground_fit_ms: deque[float] = deque(maxlen=500)
             self._arm_stamps.clear()
             self._arm_poses.clear()
@@ -991,11 +996,23 @@ class OdometryEstimator:
             self._ground_fit_ms.append((time.perf_counter() - start) * 1e3)
             if fit is not None:
                 unit = self._vo.map.unit_scale  # fits made before a move of the map are in its earlier unit
-                self._ground_fits.append(fit.scale * unit)
-                logs = np.log(self._ground_fits)  # the fits' spread: their MAD as a normal's standard deviation
-                spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs)))) if len(logs) >= 3 else 0.0
-                estimate = ScaleEstimate(float(np.median(self._ground_fits)) / unit, "ground", fit.samples,
-                                         max(GROUND_SCALE_STD, spread))
+                through_guess = self._vo.camera.is_guess
+                if not through_guess:
+                    # A fit through a solved camera replaces those through the guess: the median of the two
+                    # kinds put heldout_640's first solved fit (x0.99 of the truth) beside one of x1.58.
+                    kept = [(value, guess) for value, guess in self._ground_fits if not guess]
+                    self._ground_fits.clear()
+                    self._ground_fits.extend(kept)
+                self._ground_fits.append((fit.scale * unit, through_guess))
+                values = [value for value, _ in self._ground_fits]
+                logs = np.log(values)  # the fits' spread: their MAD as a normal's standard deviation
+                measured = len(logs) >= MIN_GROUND_FITS_SPREAD
+                spread = 1.4826 * float(np.median(np.abs(logs - np.median(logs)))) if measured else 0.0
+                if through_guess:
+                    floor = GUESS_GROUND_SCALE_STD
+                else:
+                    floor = GROUND_SCALE_STD if measured else FEW_GROUND_FITS_SCALE_STD
+                estimate = ScaleEstimate(float(np.median(values)) / unit, "ground", fit.samples, max(floor, spread))
         if estimate is not None:
             self._scale = estimate
 

@@ -50,6 +50,17 @@ POSE_HEAD_SCALE_STD = 1.2
 #: map's true scale at its newest keyframes by a median 5 % (log), and the median of five fits by as much
 #: (their windows overlap; measured).
 GROUND_SCALE_STD = 0.075
+#: The same for a fit made through the f = width guess (before the camera's first initialisation): the
+#: 11 such fits over 21 dev replays were x0.89-1.65 of the window's true scale (log RMS 0.26, median x1.15),
+#: against log RMS 0.08 for the 401 made through a solved camera (measured). Kept only until the first
+#: fit through a solved camera replaces them.
+GUESS_GROUND_SCALE_STD = 0.26
+#: The same for a live scale from only one or two fits through a solved camera, which no spread measures
+#: yet: over 21 dev replays its log error was RMS 0.21 with one fit (21 keyframes) and 0.15 with two (21),
+#: against 0.064 with three or more (359), where a single fit was up to x1.4 off (measured).
+FEW_GROUND_FITS_SCALE_STD = 0.2
+#: Fewest fits whose spread measures the live ground scale's.
+MIN_GROUND_FITS_SPREAD = 3
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
