@@ -288,6 +288,13 @@ def test_a_direction_free_step_covariance_holds_a_step_of_that_length_in_any_dir
             true[:3, 3] = true_translation
             error = (np.linalg.inv(true) @ measured)[:3, 3]
             assert error @ np.linalg.solve(covariance[:3, :3], error) == pytest.approx(nees, rel=1e-9)
+        # Another measure of the length (the pose head's): the longer one sizes the error, so a step the
+        # map measured at a thirtieth of its length is held by the other; a shorter or NaN one changes nothing.
+        longer = 30 * float(np.linalg.norm(measured[:3, 3]))
+        np.testing.assert_allclose(direction_free_step_covariance(measured, 1.2, longer)[:3, :3],
+                                   (longer * 2.2) ** 2 * np.eye(3), rtol=1e-12)
+        for other in (0.5 * float(np.linalg.norm(measured[:3, 3])), float("nan"), None):
+            np.testing.assert_array_equal(direction_free_step_covariance(measured, 1.2, other), covariance)
 
 
 def street(noise_m: float = 0.0, seed: int = 0, ceiling: bool = False, pitch_deg: float = 3.0) -> dict:

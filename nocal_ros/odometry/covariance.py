@@ -61,7 +61,8 @@ def scale_step_covariance(T_ci_cj: np.ndarray, relative_scale_std: float) -> np.
     return covariance
 
 
-def direction_free_step_covariance(T_ci_cj: np.ndarray, relative_length_std: float) -> np.ndarray:
+def direction_free_step_covariance(T_ci_cj: np.ndarray, relative_length_std: float,
+                                   other_length: float | None = None) -> np.ndarray:
     """``(6, 6)`` covariance, ``(rho, theta)``, of a step whose translation's direction is not known.
 
     The true step may then lie in any direction from the measured one, about as long as measured to
@@ -72,8 +73,13 @@ def direction_free_step_covariance(T_ci_cj: np.ndarray, relative_length_std: flo
     Args:
         T_ci_cj: ``(4, 4)`` the step as measured, the later camera in the earlier one.
         relative_length_std: the measured length's standard deviation over its value.
+        other_length: another measure of the step's length (the pose head's for the same pair), the
+            longer of the two setting the error's size: a map made through the guess can shrink the
+            steps measured against it far below their length (the fisheye's, x0.01-0.09).
     """
     length = float(np.linalg.norm(T_ci_cj[:3, 3]))
+    if other_length is not None and np.isfinite(other_length):
+        length = max(length, float(other_length))
     covariance = np.zeros((6, 6))
     covariance[:3, :3] = (length * (1.0 + float(relative_length_std))) ** 2 * np.eye(3)
     return covariance

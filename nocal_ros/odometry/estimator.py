@@ -63,8 +63,9 @@ Covariance (how it is derived)
     :data:`~nocal_ros.odometry.scale.POSE_HEAD_SCALE_STD`), the pose head's where its length is used.
     Without it, a replay on the pose head's scale (heldout_160, x0.7) had 51 % of its steps' translation
     errors within the 99 % bound; with it all. A step measured through the guessed camera on the pose
-    head's scale knows its direction no better than its length: the whole step's length, times
-    ``1 + POSE_HEAD_SCALE_STD``, is added on every axis
+    head's scale knows its direction no better than its length: the step's length, or the pose head's for
+    the same pair where that is longer (a map made through the guess shrank the fisheye's steps to
+    x0.01-0.09), times ``1 + POSE_HEAD_SCALE_STD``, is added on every axis
     (:func:`~nocal_ros.odometry.covariance.direction_free_step_covariance`). The pose covariance, in ROS order
     ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s axes, is
     propagated to first order::
@@ -788,7 +789,11 @@ class OdometryEstimator:
         if scale_std > 0:
             sigma = sigma + scale_step_covariance(T_ci_cj, scale_std)
         if self._direction_unknown(vo_frame, source):
-            sigma = sigma + direction_free_step_covariance(T_ci_cj, POSE_HEAD_SCALE_STD)
+            head_length = None
+            if source == "vo":  # a two-view step's length is the pose head's already
+                head_length, ms = self._pose_head_length(frame - 1, frame, key)
+                inference_ms += ms
+            sigma = sigma + direction_free_step_covariance(T_ci_cj, POSE_HEAD_SCALE_STD, head_length)
         self._previous_focal_std = focal_std
         return self._integrate(stamp_ns, T_ci_cj, max(gap, 1), inference_ms, status, source, sigma,
                                tracking=vo_frame.state, keyframe=vo_frame.keyframe)
