@@ -704,8 +704,8 @@ def test_a_fisheyes_steps_through_the_guess_are_held_by_the_pose_heads_length_wh
     """Through the f = width guess a fisheye's map shrinks the steps measured against it: on the field
     fisheye (the field_heldout bag's first 22 frames), the steps on the pose head's scale came out
     x0.01-0.09 of their length, so a direction-free covariance the size of the published step held 2 of
-    16 of them (measured). The pose head's length for the same pair sizes it where longer: all 16 held.
-    Only those steps' covariance changes: every pose is the same."""
+    16 of them (measured). The pose head's length of a step at the map's start sizes it where longer:
+    all 16 held. Only those steps' covariance changes: every pose is the same."""
     from pathlib import Path
 
     from nocal_ros.commands.synth import camera_at_size
@@ -759,8 +759,9 @@ def test_steps_through_the_guessed_camera_on_the_pose_heads_scale_publish_no_dir
     direction (PnP against a map made through the guess) nor its length, and its covariance says so:
     isotropic, as long as the step may be (``direction_free_step_covariance``). On r160_207's camera
     (f 87 px, the guess 85 % long) the 10 such steps were 1.55 steps off (RMS), and their translation NEES
-    went from a mean of 22 (7 of 10 steps above the 99 % bound) to 0.79 (none; measured). Only the
-    covariance of those steps changes: every pose is the same."""
+    went from a mean of 22 (7 of 10 steps above the 99 % bound) to 0.79 (none), and to 0.13 since the
+    pose head's step length sizes it where longer (measured). Only the covariance of those steps
+    changes: every pose is the same."""
     from nocal_ros.data.synthetic import random_calibration
     from nocal_ros.evaluation import CHI2_3DOF_99
     from nocal_ros.odometry.estimator import OdometryEstimator as Estimator

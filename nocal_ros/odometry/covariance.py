@@ -73,9 +73,9 @@ def direction_free_step_covariance(T_ci_cj: np.ndarray, relative_length_std: flo
     Args:
         T_ci_cj: ``(4, 4)`` the step as measured, the later camera in the earlier one.
         relative_length_std: the measured length's standard deviation over its value.
-        other_length: another measure of the step's length (the pose head's for the same pair), the
-            longer of the two setting the error's size: a map made through the guess can shrink the
-            steps measured against it far below their length (the fisheye's, x0.01-0.09).
+        other_length: another measure of the step's length (the pose head's), the longer of the two
+            setting the error's size: a map made through the guess can shrink the steps measured
+            against it far below their length (the fisheye's, x0.01-0.09).
     """
     length = float(np.linalg.norm(T_ci_cj[:3, 3]))
     if other_length is not None and np.isfinite(other_length):

@@ -63,9 +63,9 @@ Covariance (how it is derived)
     :data:`~nocal_ros.odometry.scale.POSE_HEAD_SCALE_STD`), the pose head's where its length is used.
     Without it, a replay on the pose head's scale (heldout_160, x0.7) had 51 % of its steps' translation
     errors within the 99 % bound; with it all. A step measured through the guessed camera on the pose
-    head's scale knows its direction no better than its length: the step's length, or the pose head's for
-    the same pair where that is longer (a map made through the guess shrank the fisheye's steps to
-    x0.01-0.09), times ``1 + POSE_HEAD_SCALE_STD``, is added on every axis
+    head's scale knows its direction no better than its length: the step's length, or the pose head's
+    length of a step at the map's start where that is longer (a map made through the guess shrank the
+    fisheye's steps to x0.01-0.09), times ``1 + POSE_HEAD_SCALE_STD``, is added on every axis
     (:func:`~nocal_ros.odometry.covariance.direction_free_step_covariance`). The pose covariance, in ROS order
     ``(x, y, z, rot_x, rot_y, rot_z)`` with position in ``odom`` and rotation about ``odom``'s axes, is
     propagated to first order::
@@ -416,6 +416,7 @@ class OdometryEstimator:
             self._anchor: np.ndarray | None = None  # T_odom_map of the current map
             self._anchor_map_id = -1
             self._scale = ScaleEstimate()
+            self._head_step_length: float | None = None  # the pose head's length of one step at the map's start (m)
             # (metres per unit of the map as made, made through the guessed camera) per live ground fit
             self._ground_fits: deque[tuple[float, bool]] = deque(maxlen=GROUND_FIT_HISTORY)
             self._ground_fit_ms: deque[float] = deque(maxlen=500)
@@ -789,10 +790,10 @@ class OdometryEstimator:
         if scale_std > 0:
             sigma = sigma + scale_step_covariance(T_ci_cj, scale_std)
         if self._direction_unknown(vo_frame, source):
+            # A two-view step's length is the pose head's already; a map's step, also the pose head's at its start.
             head_length = None
-            if source == "vo":  # a two-view step's length is the pose head's already
-                head_length, ms = self._pose_head_length(frame - 1, frame, key)
-                inference_ms += ms
+            if source == "vo" and self._head_step_length is not None:
+                head_length = self._head_step_length * max(gap, 1)
             sigma = sigma + direction_free_step_covariance(T_ci_cj, POSE_HEAD_SCALE_STD, head_length)
         self._previous_focal_std = focal_std
         return self._integrate(stamp_ns, T_ci_cj, max(gap, 1), inference_ms, status, source, sigma,
@@ -955,6 +956,10 @@ class OdometryEstimator:
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id
         self._ground_fits.clear()
+        # One step's length as the pose head reads it, for the steps the map measures through the guess
+        # (_direction_unknown): once per map, not per step (the pose head per step cost 3 ms a frame over a
+        # 30 Hz replay's first 73 frames, measured).
+        self._head_step_length, _ = self._pose_head_length(frame - 1, frame, key)
         # The map's unit is the baseline between its first two keyframes; measure it in metres.
         baseline = np.linalg.norm(vo_frame.T_map_cam[:3, 3])
         first_guess = None
