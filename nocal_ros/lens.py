@@ -110,10 +110,30 @@ def distort_normalised(xy, coefficients, model: str):
         return xp.stack((x * scale, y * scale), -1)
     s = x * x + y * y
     radial, _ = _radial_and_derivative(s, D, model)
+    return xp.stack(_polynomial_image(x, y, s, radial, D), -1)
+
+
+def _polynomial_image(x, y, s, radial, D):
+    """``(xd, yd)`` of the polynomial models at ``(x, y)``, given ``s = x^2 + y^2`` and its radial factor."""
     p1, p2 = D[2], D[3]
-    xd = x * radial + 2 * p1 * x * y + p2 * (s + 2 * x * x)
-    yd = y * radial + p1 * (s + 2 * y * y) + 2 * p2 * x * y
-    return xp.stack((xd, yd), -1)
+    return (x * radial + 2 * p1 * x * y + p2 * (s + 2 * x * x),
+            y * radial + p1 * (s + 2 * y * y) + 2 * p2 * x * y)
+
+
+def _polynomial_jacobian(x, y, radial, d_radial, D):
+    """``(j00, j01, j11)`` of ``d(xd, yd) / d(x, y)`` (``j10 = j01``), given the radial factor and its
+    derivative in ``s``."""
+    p1, p2 = D[2], D[3]
+    return (radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x,
+            2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y,
+            radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x)
+
+
+def _inverse_jacobian_times(j00, j01, j10, j11, rx, ry):
+    """``J^-1 (rx, ry)`` as ``(N, 2)``, a singular Jacobian's determinant taken as 1."""
+    det = j00 * j11 - j01 * j10
+    det = np.where(np.abs(det) > 1e-300, det, 1.0)
+    return np.stack((j11 * rx - j01 * ry, -j10 * rx + j00 * ry), -1) / det[:, None]
 
 
 def distortion_jacobians(xy: np.ndarray, coefficients: np.ndarray, model: str) -> tuple[np.ndarray, np.ndarray]:
@@ -164,10 +184,7 @@ def _distortion_jacobian(x, y, D, model: str):
     """``d(xd, yd) / d(x, y)`` of the polynomial models, as four arrays."""
     s = x * x + y * y
     radial, d_radial = _radial_and_derivative(s, D, model)
-    p1, p2 = D[2], D[3]
-    j00 = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
-    j01 = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
-    j11 = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
+    j00, j01, j11 = _polynomial_jacobian(x, y, radial, d_radial, D)
     return j00, j01, j01, j11
 
 
@@ -175,9 +192,7 @@ def _newton_step(x, residual, D, model: str):
     """``J(x)^-1 residual`` for float64 numpy points ``(N, 2)``: what a Newton step on ``distort(x) = target``
     subtracts (a singular Jacobian's determinant taken as 1)."""
     j00, j01, j10, j11 = _distortion_jacobian(x[:, 0], x[:, 1], D, model)
-    det = j00 * j11 - j01 * j10
-    det = np.where(np.abs(det) > 1e-300, det, 1.0)
-    return np.stack((j11 * residual[:, 0] - j01 * residual[:, 1], -j10 * residual[:, 0] + j00 * residual[:, 1]), -1) / det[:, None]
+    return _inverse_jacobian_times(j00, j01, j10, j11, residual[:, 0], residual[:, 1])
 
 
 def _residual_and_jacobian(x, target, D, model: str):
@@ -188,21 +203,15 @@ def _residual_and_jacobian(x, target, D, model: str):
     px, py = x[:, 0], x[:, 1]
     s = px * px + py * py
     radial, d_radial = _radial_and_derivative(s, D, model)
-    p1, p2 = D[2], D[3]
-    rx = px * radial + 2 * p1 * px * py + p2 * (s + 2 * px * px) - target[:, 0]
-    ry = py * radial + p1 * (s + 2 * py * py) + 2 * p2 * px * py - target[:, 1]
-    j00 = radial + 2 * px * px * d_radial + 2 * p1 * py + 6 * p2 * px
-    j01 = 2 * px * py * d_radial + 2 * p1 * px + 2 * p2 * py
-    j11 = radial + 2 * py * py * d_radial + 6 * p1 * py + 2 * p2 * px
-    return rx, ry, j00, j01, j11, s, radial, d_radial
+    xd, yd = _polynomial_image(px, py, s, radial, D)
+    j00, j01, j11 = _polynomial_jacobian(px, py, radial, d_radial, D)
+    return xd - target[:, 0], yd - target[:, 1], j00, j01, j11, s, radial, d_radial
 
 
 def _polynomial_newton_step(x, target, D, model: str):
     """:func:`_newton_step` on ``distort(x) - target``, from :func:`_residual_and_jacobian`."""
     rx, ry, j00, j01, j11, _, _, _ = _residual_and_jacobian(x, target, D, model)
-    det = j00 * j11 - j01 * j01
-    det = np.where(np.abs(det) > 1e-300, det, 1.0)
-    return np.stack((j11 * rx - j01 * ry, -j01 * rx + j00 * ry), -1) / det[:, None]
+    return _inverse_jacobian_times(j00, j01, j01, j11, rx, ry)
 
 
 def _newton_undistort(target, D, model: str, checked: bool = False):
