@@ -958,8 +958,8 @@ class OdometryEstimator:
         self._ground_fits.clear()
         # One step's length as the pose head reads it, for the steps the map measures through the guess
         # (_direction_unknown): once per map, not per step (the pose head per step cost 3 ms a frame over a
-        # 30 Hz replay's first 73 frames, measured).
-        self._head_step_length, _ = self._pose_head_length(frame - 1, frame, key)
+        # 30 Hz replay's first 73 frames, measured), and only for a map started through the guess.
+        self._head_step_length = self._pose_head_length(frame - 1, frame, key)[0] if vo_frame.through_guess else None
         # The map's unit is the baseline between its first two keyframes; measure it in metres.
         baseline = np.linalg.norm(vo_frame.T_map_cam[:3, 3])
         first_guess = None
