@@ -22,6 +22,10 @@ A monocular map is correct up to one scale factor ``s`` (metres per map unit). T
   the bag's mean true height: 0.976-1.021 of the true scale on 18 rendered maps, 1.058 on r160_202's
   (found beneath a plane rejected), none on r640_304's first five keyframes, and 0.997 on KITTI's frames
   20-50 with its 1.65 m, where the pose head's scale was off by x0.2-51.
+  Before a window shows enough of the ground for a plane (a road's landmarks are few: its tracks stretch
+  as they near and last about a frame), the ground's homography between consecutive frames measures the
+  step over the height from the tracks alone (:func:`ground_motion_ratio`, its normal within the same
+  tilt of the expected down).
 
 Arm poses win whenever a fit is possible, then the ground plane; ``source`` says which was used.
 
@@ -61,6 +65,11 @@ GUESS_GROUND_SCALE_STD = 0.26
 FEW_GROUND_FITS_SCALE_STD = 0.2
 #: Fewest fits whose spread measures the live ground scale's.
 MIN_GROUND_FITS_SPREAD = 3
+#: The same for a live scale from the ground's homography between consecutive frames (the median of the newest
+#: three to nine frame pairs, through a solved camera, before any window's plane fit): over the 21 dev replays
+#: its log error was RMS 0.24 at 47 updates on 7 replays, at most x1.86 (r640_307's, a plane that is not the
+#: floor; measured).
+GROUND_MOTION_SCALE_STD = 0.24
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
@@ -285,3 +294,136 @@ def fit_ground_scale(points: np.ndarray, centres: np.ndarray, down: np.ndarray, 
         return None
     scale = float(camera_height / np.median(plane.heights(centres)))
     return ScaleEstimate(scale, "ground", plane.inliers, GROUND_SCALE_STD) if np.isfinite(scale) and scale > 0 else None
+
+
+#: Fewest tracks on the ground plane that must agree on a frame pair's ratio of distance moved to height.
+MIN_HOMOGRAPHY_INLIERS = 8
+#: A track agrees with the ground plane's homography when its transfer error is below this, in normalised
+#: image units (radians near the image centre; 3 px at KITTI's 719 px focal length).
+HOMOGRAPHY_THRESHOLD = 0.004
+#: RANSAC hypotheses (three tracks each) for the ground plane's homography, drawn with a fixed seed.
+HOMOGRAPHY_HYPOTHESES = 300
+
+
+@dataclass(frozen=True)
+class GroundMotion:
+    """A frame pair's distance moved over the camera's height above the ground (``ratio``, ``|t| / d``), the
+    plane's unit ``normal`` (earlier camera's coordinates, pointing down to it), the tracks that agreed, and
+    the ratio's standard error (least squares', from their scatter)."""
+
+    ratio: float
+    normal: np.ndarray
+    inliers: int
+    std: float
+
+
+def ground_motion_ratio(previous: np.ndarray, current: np.ndarray, rotation: np.ndarray, direction: np.ndarray,
+                        down: np.ndarray, threshold: float = HOMOGRAPHY_THRESHOLD,
+                        min_inliers: int = MIN_HOMOGRAPHY_INLIERS, max_tilt_deg: float = GROUND_MAX_TILT_DEG,
+                        min_depression_deg: float = GROUND_MIN_DEPRESSION_DEG,
+                        hypotheses: int = HOMOGRAPHY_HYPOTHESES, seed: int = 0) -> GroundMotion | None:
+    """The distance a camera moved over its height above the ground plane, ``|t| / d``, from tracks on the
+    plane in two frames (:class:`GroundMotion`), or None where fewer than ``min_inliers`` tracks agree.
+
+    A point on the plane ``n . X = d`` moves between the frames by the plane's homography
+    ``R + t n^T / d`` (``X_current = R X_previous + t``). With ``R`` and the direction of ``t`` known (from
+    the VO: a monocular map measures everything but the length), each track gives one linear equation in
+    ``m = (|t| / d) n`` (three unknowns): the ``m`` that most tracks agree with (transfer error below
+    ``threshold``; RANSAC over triples, its normal within ``max_tilt_deg`` of ``down``), refitted to them by
+    least squares, gives ``|m| = |t| / d``. With the height ``d`` known the step is metric. It needs no
+    landmark: tracks that live one frame are enough (a road's, which stretch as they near).
+
+    Args:
+        previous, current: ``(N, 2)`` normalised image coordinates (undistorted ``x / z, y / z``) of the same
+            tracks in the earlier and the later frame.
+        rotation: ``(3, 3)`` ``R`` taking the earlier camera's coordinates to the later one's.
+        direction: ``(3,)`` the direction of ``t`` (normalised here), in the later camera's coordinates.
+        down: ``(3,)`` the expected down direction in the earlier camera's coordinates.
+        threshold: largest transfer error of an agreeing track (normalised units).
+        min_inliers: fewest agreeing tracks.
+        max_tilt_deg: largest angle between the plane's normal and ``down``.
+        min_depression_deg: only tracks seen at least this far below the horizontal (against ``down``) in
+            the earlier frame are candidates, as in :func:`fit_ground_plane`.
+        hypotheses: RANSAC triples, drawn with ``seed``.
+    """
+    previous = np.asarray(previous, dtype=np.float64).reshape(-1, 2)
+    current = np.asarray(current, dtype=np.float64).reshape(-1, 2)
+    rotation = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    direction = np.asarray(direction, dtype=np.float64).reshape(3)
+    down = np.asarray(down, dtype=np.float64).reshape(3)
+    if not (np.linalg.norm(direction) > 0 and np.linalg.norm(down) > 0):
+        return None
+    direction, down = direction / np.linalg.norm(direction), down / np.linalg.norm(down)
+    rays = np.c_[previous, np.ones(len(previous))]
+    finite = np.isfinite(rays).all(1) & np.isfinite(current).all(1)
+    below = np.zeros(len(rays), dtype=bool)
+    below[finite] = rays[finite] @ down > np.sin(np.radians(min_depression_deg)) * np.linalg.norm(rays[finite], axis=1)
+    if below.sum() < max(3, min_inliers):
+        return None
+    rays, u, v = rays[below], current[below, 0], current[below, 1]
+    # x_current ~ R x + (m . x) direction: each track's two image equations in the one scalar m . x.
+    turned = rays @ rotation.T
+    cu, du = u * direction[2] - direction[0], turned[:, 0] - u * turned[:, 2]
+    cv, dv = v * direction[2] - direction[1], turned[:, 1] - v * turned[:, 2]
+    weights = cu**2 + cv**2  # how much the track's image moves with m . x
+    usable = weights > 1e-12
+    along = np.zeros(len(rays))
+    along[usable] = (cu[usable] * du[usable] + cv[usable] * dv[usable]) / weights[usable]
+
+    def transfer_errors(m: np.ndarray) -> np.ndarray:
+        """``(H, M)`` transfer error of each track for each ``m`` ``(H, 3)`` (inf behind the camera)."""
+        moved = turned[None] + (m @ rays.T)[..., None] * direction
+        depth = moved[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            errors = np.hypot(moved[..., 0] / depth - u, moved[..., 1] / depth - v)
+        return np.where(depth > 0, errors, np.inf)
+
+    def plane_of(inliers: np.ndarray) -> np.ndarray | None:
+        """Weighted least squares ``m`` of ``rays[inliers] . m = along[inliers]``."""
+        A = rays[inliers] * np.sqrt(weights[inliers])[:, None]
+        solution, *_ = np.linalg.lstsq(A, along[inliers] * np.sqrt(weights[inliers]), rcond=None)
+        return solution if np.isfinite(solution).all() else None
+
+    cos_tilt = np.cos(np.radians(max_tilt_deg))
+    candidates = np.flatnonzero(usable)
+    if len(candidates) < 3:
+        return None
+    triples = np.random.default_rng(seed).integers(0, len(candidates), (hypotheses, 3))
+    distinct = (triples[:, 0] != triples[:, 1]) & (triples[:, 0] != triples[:, 2]) & (triples[:, 1] != triples[:, 2])
+    triples = candidates[triples[distinct]]
+    if len(triples) == 0:
+        return None
+    A = rays[triples]
+    solvable = np.abs(np.linalg.det(A)) > 1e-12
+    if not solvable.any():
+        return None
+    m = np.linalg.solve(A[solvable], along[triples[solvable]][..., None])[..., 0]
+    lengths = np.linalg.norm(m, axis=1)
+    upright = (lengths > 0) & ((m @ down) >= cos_tilt * lengths)
+    if not upright.any():
+        return None
+    m = m[upright]
+    agree = transfer_errors(m) < threshold
+    inliers = agree[int(np.argmax(agree.sum(1)))]
+    for _ in range(2):  # least squares on the agreeing tracks, then on the refitted plane's
+        if inliers.sum() < max(3, min_inliers):
+            return None
+        best = plane_of(inliers)
+        if best is None:
+            return None
+        inliers = transfer_errors(best[None])[0] < threshold
+    count = int(inliers.sum())
+    ratio = float(np.linalg.norm(best))
+    if count < min_inliers or not ratio > 0 or best @ down < cos_tilt * ratio:
+        return None
+    normal = best / ratio
+    # The least squares' own standard error along the normal: the tracks' scatter over their information.
+    A = rays[inliers] * np.sqrt(weights[inliers])[:, None]
+    residuals = A @ best - along[inliers] * np.sqrt(weights[inliers])
+    variance = float(residuals @ residuals) / max(count - 3, 1)
+    information = A.T @ A
+    try:
+        std = float(np.sqrt(variance * normal @ np.linalg.solve(information, normal)))
+    except np.linalg.LinAlgError:
+        return None
+    return GroundMotion(ratio, normal, count, std)
