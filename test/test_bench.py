@@ -32,7 +32,7 @@ def test_bench_times_the_keyframe_vo_and_counts_every_frame_of_the_real_time_rep
     assert realtime["worker_cpu"]["count"] == realtime["frames_processed"] and realtime["worker_cpu"]["median_ms"] > 0
     text = format_bench(report)
     assert "tracking (frontend + PnP)" in text and "real time at 30 Hz" in text and "worker CPU" in text
-    assert "ground-plane fit" in text
+    assert "ground-plane fit" in text and "ground homography" in text
 
 
 def test_bench_rejects_a_non_positive_rate():

@@ -118,9 +118,10 @@ def test_vo_timings_become_median_and_max_milliseconds_and_zero_before_any():
     from nocal_ros.live.health import vo_timing_values
 
     values = vo_timing_values({"tracking": [3.0, 1.0, 2.0, 10.0], "mapping": [], "bundle_adjustment": [40.0],
-                               "ground_fit": [1.5, 2.5, 1.0]})
+                               "ground_fit": [1.5, 2.5, 1.0], "ground_motion": [1.2, 0.8]})
     assert values["tracking_ms_median"] == 2.5 and values["tracking_ms_max"] == 10.0
     assert values["mapping_ms_median"] == 0.0 and values["mapping_ms_max"] == 0.0
     assert values["bundle_adjustment_ms_median"] == 40.0
     assert values["ground_fit_ms_median"] == 1.5 and values["ground_fit_ms_max"] == 2.5
+    assert values["ground_motion_ms_median"] == 1.0 and values["ground_motion_ms_max"] == 1.2
     assert vo_timing_values({})["tracking_ms_median"] == 0.0

@@ -235,6 +235,7 @@ def bench_vo(pose_model, frames: list[np.ndarray], warmup: int, rate_hz: float,
         "estimator_inline_mean_ms": float(np.mean(per_frame)),
         "camera_height_m": camera_height,
         "ground_fit": _percentiles(timings["ground_fit"]),
+        "ground_motion": _percentiles(timings["ground_motion"]),
         "keyframes": int(estimator.counters.keyframes),
         "tracking_states": dict(vars(estimator.counters)),
     }
@@ -357,6 +358,7 @@ def _format_vo(vo: dict[str, Any]) -> list[str]:
     ]
     if vo.get("camera_height_m"):
         lines.append(f"    ground-plane fit ({vo['camera_height_m']:.3f} m):     {figure(vo['ground_fit'], 'per keyframe')}")
+        lines.append(f"    ground homography:                   {figure(vo['ground_motion'], 'per frame pair')}")
     lines += [
         f"    real time at {realtime['rate_hz']:g} Hz, mapping in its worker: {realtime['frames_processed']} of "
         f"{realtime['frames_sent']} frames processed, {realtime['frames_dropped']} dropped; latency "

@@ -120,9 +120,9 @@ class OdometryHealth:
 def vo_timing_values(timings: dict[str, list[float]]) -> dict[str, float]:
     """Diagnostic values from ``OdometryEstimator.timings()``: median and max milliseconds of the VO's
     tracking per frame, local mapping per keyframe, bundle adjustment per solve and, with a camera height,
-    the ground-plane fit per keyframe (0 before any)."""
+    the ground-plane fit per keyframe and the ground homography per frame pair (0 before any)."""
     values: dict[str, float] = {}
-    for name in ("tracking", "mapping", "bundle_adjustment", "ground_fit"):
+    for name in ("tracking", "mapping", "bundle_adjustment", "ground_fit", "ground_motion"):
         samples = np.asarray(timings.get(name) or [], dtype=np.float64)
         values[f"{name}_ms_median"] = float(np.median(samples)) if samples.size else 0.0
         values[f"{name}_ms_max"] = float(samples.max()) if samples.size else 0.0

@@ -431,6 +431,7 @@ class OdometryEstimator:
             self._ground_fit_ms: deque[float] = deque(maxlen=500)
             # metres per unit of the map as made, per frame pair's ground homography (through a solved camera)
             self._ground_motions: deque[float] = deque(maxlen=GROUND_MOTION_HISTORY)
+            self._ground_motion_ms: deque[float] = deque(maxlen=500)
             self._previous_tracks: tuple[int, int, "TrackedFrame"] | None = None  # (frame, map id, tracks)
             self._arm_stamps.clear()
             self._arm_poses.clear()
@@ -546,13 +547,15 @@ class OdometryEstimator:
         ``tracking`` per frame (frontend, PnP, keyframe decision; inline mapping excluded), ``mapping`` per
         mapped batch of keyframes (triangulation and bundle adjustment), ``bundle_adjustment`` per
         solve (in the worker process when mapping is asynchronous, the hand-over included) and, with a
-        camera height, ``ground_fit`` per live ground-plane fit (in the tracking thread, at keyframes)."""
+        camera height, ``ground_fit`` per live ground-plane fit (in the tracking thread, at keyframes) and
+        ``ground_motion`` per frame pair's ground homography (in the tracking thread, before a window's plane)."""
         with self._lock:
             vo = self._vo
             if vo is None:
-                return {"tracking": [], "mapping": [], "bundle_adjustment": [], "ground_fit": []}
+                return {"tracking": [], "mapping": [], "bundle_adjustment": [], "ground_fit": [], "ground_motion": []}
             return {"tracking": list(vo.milliseconds), "mapping": list(vo.mapping.milliseconds),
-                    "bundle_adjustment": list(vo.mapping.solve_milliseconds), "ground_fit": list(self._ground_fit_ms)}
+                    "bundle_adjustment": list(vo.mapping.solve_milliseconds), "ground_fit": list(self._ground_fit_ms),
+                    "ground_motion": list(self._ground_motion_ms)}
 
     @property
     def keyframes_merged(self) -> int:
@@ -1091,6 +1094,7 @@ class OdometryEstimator:
         length = float(np.linalg.norm(T[:3, 3]))
         if not (np.isfinite(length) and length > 0):
             return
+        start = time.perf_counter()
         _, before, after = np.intersect1d(previous[2].ids, tracks.ids, return_indices=True)
         if len(before) < MIN_HOMOGRAPHY_INLIERS:
             return
@@ -1099,6 +1103,7 @@ class OdometryEstimator:
         motion = ground_motion_ratio(calibration.undistorted_normalised(previous[2].pixels[before]),
                                      calibration.undistorted_normalised(tracks.pixels[after]), rotation,
                                      -rotation @ T[:3, 3], self._down_in_camera())
+        self._ground_motion_ms.append((time.perf_counter() - start) * 1e3)
         if motion is None:
             return
         unit = self._vo.map.unit_scale
