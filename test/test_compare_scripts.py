@@ -318,3 +318,25 @@ def test_startup_steps_groups_the_steps_through_the_guess_and_finds_them_within_
     assert sum(row["steps"] for row in rows) == 15
     assert script.main([str(bag), "--frames", "16"]) == 0
     assert "camera  scale      steps" in capsys.readouterr().out
+
+
+def test_the_real_time_replay_scores_a_bag_and_says_where_its_scale_came_from(tmp_path):
+    """scripts/compare/realtime.py replays a rendered bag at 30 Hz the node's way and prints the frames
+    processed and dropped; with a camera height (the rendered floor is the world's z = 0) it also counts the
+    frames per scale source, which cover every processed frame, and the APE without a scale correction."""
+    import re
+
+    from nocal_ros.data.synthetic import render_sequence
+
+    sequence = render_sequence(CAMERA, 30, seed=5, split="test")
+    bag = write_sequence(sequence, tmp_path / "bag")
+    height = float(np.mean(sequence.ground_truth[:, 2, 3]))
+    run = subprocess.run([sys.executable, str(SCRIPTS / "realtime.py"), str(bag), "--rate", "30",
+                          "--camera-height", f"{height:.3f}"], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    processed = int(re.search(r"(\d+) of 30 frames processed", run.stdout).group(1))
+    sources = re.search(r"scale sources \(frames\): (\{.*\}); APE SE\(3\) ([\d.]+) m", run.stdout)
+    assert sources, run.stdout
+    counts = {name: int(count) for name, count in re.findall(r"'(\w+)': (\d+)", sources.group(1))}
+    assert sum(counts.values()) == processed >= 20
+    assert set(counts) <= {"arm", "ground", "pose_head", "none"} and float(sources.group(2)) >= 0

@@ -1,6 +1,6 @@
 """Replay a bag's images in real time through the estimator as the odometry node runs it, and score it.
 
-    python scripts/compare/realtime.py BAG [--rate HZ] [--calibration YAML]
+    python scripts/compare/realtime.py BAG [--rate HZ] [--calibration YAML] [--camera-height M]
 
 The node's way: a one-slot mailbox (a frame that arrives while another is being processed replaces the
 waiting one and is counted as dropped), a worker thread that processes the newest frame, and local
@@ -8,8 +8,9 @@ mapping in its own thread and process (``nocal odometry`` maps synchronously ins
 replay repeats exactly). Prints the frames processed and dropped, the worker thread's CPU time per
 frame, the online camera's errors, and the RPE over consecutive processed frames and APE Sim(3)
 against the bag's ground truth, and the online camera's state (with the check of a given calibration,
-``--calibration``, as the node's ``camera_info_url`` gives one). Runs differ from run to run: they depend
-on the machine's timing.
+``--calibration``, as the node's ``camera_info_url`` gives one). With ``--camera-height`` (the node's
+``camera_height``) it also prints the frames per scale source and the APE without a scale correction.
+Runs differ from run to run: they depend on the machine's timing.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=0.0, help="frames per second (default: the bag's stamps)")
     parser.add_argument("--arm-topic", default="", help="arm poses (PoseStamped) for metric scale; '' to ignore")
     parser.add_argument("--calibration", help="camera_calibration YAML to start the online camera from")
+    parser.add_argument("--camera-height", type=float, help="the camera's height above the ground (m), for metric scale")
     args = parser.parse_args(argv)
 
     import torch
@@ -40,8 +42,10 @@ def main(argv: list[str] | None = None) -> int:
     stamps = np.asarray(sequence.stamps_ns, dtype=np.int64)
     rate = args.rate or 1e9 / float(np.median(np.diff(stamps)))
     arm_stamps, arm_poses = read_pose_messages(args.bag, args.arm_topic) if args.arm_topic else ([], [])
-    estimator = OdometryEstimator(calibration=CameraCalibration.load(args.calibration) if args.calibration else None)
+    estimator = OdometryEstimator(calibration=CameraCalibration.load(args.calibration) if args.calibration else None,
+                                  camera_height=args.camera_height)
     poses: dict[int, np.ndarray] = {}
+    sources: dict[str, int] = {}
     next_arm = 0
 
     def handle(k: int, image: np.ndarray) -> None:
@@ -52,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         result = estimator.process(int(stamps[k]), image)
         if result is not None:
             poses[k] = result.T_odom_cam
+            sources[result.scale_source] = sources.get(result.scale_source, 0) + 1
 
     replay = replay_at_rate(sequence.images, rate, handle)
     estimator.wait_for_mapping(timeout=60.0)
@@ -71,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     status = estimator.calibration_status()
     checks = [f"{kind} calibration {status[kind + '_check']}" for kind in ("given", "carried") if status.get(kind + "_check")]
     print(f"camera: {status['state']} ({status['source']})" + "".join(f"; {check}" for check in checks))
+    if args.camera_height is not None:
+        metric = evaluation.absolute_pose_error(estimate, truth, correct_scale=False)
+        print(f"scale sources (frames): {dict(sorted(sources.items()))}; APE SE(3) {metric['rmse']:.4f} m")
     estimator.close()
     return 0
 
