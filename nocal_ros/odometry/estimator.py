@@ -166,7 +166,10 @@ ARM_PAIR_SCALE_STD = 0.1
 GROUND_FIT_HISTORY = 5
 #: A map's scale from the ground plane's homography between consecutive frames (before any window's plane
 #: fit: :meth:`OdometryEstimator._update_ground_motion`) is the median of its newest samples, this many at most
-#: and at least :data:`MIN_GROUND_MOTION_SAMPLES`.
+#: and at least :data:`MIN_GROUND_MOTION_SAMPLES`, made within the last :data:`GROUND_FIT_KEYFRAMES`
+#: keyframes (the live plane fit's span: a monocular map's scale drifts, and the camera moves while it
+#: converges; r640_307's sample of frame 17, x2.26 in a map tracked through a camera 27-89 % off, made the
+#: median of frame 86's three x1.86, measured).
 GROUND_MOTION_HISTORY = 9
 MIN_GROUND_MOTION_SAMPLES = 3
 #: Arm poses kept, and how far from a keyframe's stamp one may be to count for it.
@@ -430,7 +433,7 @@ class OdometryEstimator:
             self._ground_fits: deque[tuple[float, bool]] = deque(maxlen=GROUND_FIT_HISTORY)
             self._ground_fit_ms: deque[float] = deque(maxlen=500)
             # metres per unit of the map as made, per frame pair's ground homography (through a solved camera)
-            self._ground_motions: deque[float] = deque(maxlen=GROUND_MOTION_HISTORY)
+            self._ground_motions: deque[tuple[float, int]] = deque(maxlen=GROUND_MOTION_HISTORY)  # (value, keyframes then)
             self._ground_motion_ms: deque[float] = deque(maxlen=500)
             self._previous_tracks: tuple[int, int, "TrackedFrame"] | None = None  # (frame, map id, tracks)
             self._arm_stamps.clear()
@@ -1107,10 +1110,13 @@ class OdometryEstimator:
         if motion is None:
             return
         unit = self._vo.map.unit_scale
-        self._ground_motions.append(motion.ratio * self.camera_height / length * unit)
+        keyframes = self.counters.keyframes
+        self._ground_motions.append((motion.ratio * self.camera_height / length * unit, keyframes))
+        while self._ground_motions[0][1] < keyframes - GROUND_FIT_KEYFRAMES:
+            self._ground_motions.popleft()
         if len(self._ground_motions) >= MIN_GROUND_MOTION_SAMPLES:
-            self._scale = ScaleEstimate(float(np.median(self._ground_motions)) / unit, "ground",
-                                        len(self._ground_motions), GROUND_MOTION_SCALE_STD)
+            values = [value for value, _ in self._ground_motions]
+            self._scale = ScaleEstimate(float(np.median(values)) / unit, "ground", len(values), GROUND_MOTION_SCALE_STD)
 
     def _arm_keyframes(self, local_map: "LocalMap") -> list[tuple[int, np.ndarray, np.ndarray]]:
         """``(keyframe index, map position, arm position)`` of the map's keyframes with an arm pose, oldest first."""
