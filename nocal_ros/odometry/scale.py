@@ -369,6 +369,8 @@ def ground_motion_ratio(previous: np.ndarray, current: np.ndarray, rotation: np.
     usable = weights > 1e-12
     along = np.zeros(len(rays))
     along[usable] = (cu[usable] * du[usable] + cv[usable] * dv[usable]) / weights[usable]
+    # The weighted least squares' rows rays . m = along, each scaled by sqrt(weight): for the refits and the std.
+    weighted_rays, weighted_along = rays * np.sqrt(weights)[:, None], along * np.sqrt(weights)
 
     def transfer_errors(m: np.ndarray) -> np.ndarray:
         """``(H, M)`` transfer error of each track for each ``m`` ``(H, 3)`` (inf behind the camera)."""
@@ -380,8 +382,7 @@ def ground_motion_ratio(previous: np.ndarray, current: np.ndarray, rotation: np.
 
     def plane_of(inliers: np.ndarray) -> np.ndarray | None:
         """Weighted least squares ``m`` of ``rays[inliers] . m = along[inliers]``."""
-        A = rays[inliers] * np.sqrt(weights[inliers])[:, None]
-        solution, *_ = np.linalg.lstsq(A, along[inliers] * np.sqrt(weights[inliers]), rcond=None)
+        solution, *_ = np.linalg.lstsq(weighted_rays[inliers], weighted_along[inliers], rcond=None)
         return solution if np.isfinite(solution).all() else None
 
     cos_tilt = np.cos(np.radians(max_tilt_deg))
@@ -418,8 +419,8 @@ def ground_motion_ratio(previous: np.ndarray, current: np.ndarray, rotation: np.
         return None
     normal = best / ratio
     # The least squares' own standard error along the normal: the tracks' scatter over their information.
-    A = rays[inliers] * np.sqrt(weights[inliers])[:, None]
-    residuals = A @ best - along[inliers] * np.sqrt(weights[inliers])
+    A = weighted_rays[inliers]
+    residuals = A @ best - weighted_along[inliers]
     variance = float(residuals @ residuals) / max(count - 3, 1)
     information = A.T @ A
     try:
