@@ -8,16 +8,19 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
 from test_bundle_adjustment import make_window
-from test_camera_initialisation import noisy_window, problem_through
+from test_camera_initialisation import noisy_window, problem_through, tracked_through_the_guess
 
 from nocal_ros.geometry import so3_exp
 from nocal_ros.odometry.calibration import OnlineCamera
-from nocal_ros.odometry.local_mapping import SOLVER_RESTARTS, LocalMapping
+from nocal_ros.odometry import local_mapping
+from nocal_ros.odometry.camera_initialisation import initialise_camera
+from nocal_ros.odometry.local_mapping import SOLVER_RESTARTS, LocalMapping, solver_processes
 from nocal_ros.odometry.map import LocalMap
 
 
@@ -30,21 +33,57 @@ def test_a_solver_process_that_died_is_replaced_and_the_solve_still_runs():
     mapping = LocalMapping(OnlineCamera(camera, "file"), synchronous=False)
     try:
         first = mapping._solve(problem)
-        (pid,) = list(mapping._solver._processes)
+        (pid,) = list(mapping._solvers[0]._processes)
         os.kill(pid, signal.SIGKILL)
         again = mapping._solve(problem)
         assert first.success and again.success
         np.testing.assert_allclose(again.poses, first.poses, atol=1e-12)
         assert mapping.solver_restarts == 1
-        assert pid not in mapping._solver._processes
+        assert pid not in mapping._solvers[0]._processes
         # One that keeps dying is not replaced for ever: past SOLVER_RESTARTS the solve fails.
         mapping.solver_restarts = SOLVER_RESTARTS
-        (pid,) = list(mapping._solver._processes)
+        (pid,) = list(mapping._solvers[0]._processes)
         os.kill(pid, signal.SIGKILL)
         with pytest.raises(BrokenProcessPool):
             mapping._solve(problem)
     finally:
         mapping.close()
+
+
+def test_a_camera_initialisation_spread_over_two_solver_processes_chooses_as_one_process_does(monkeypatch):
+    """A live stream's first camera initialisation, its twelve candidates spread over two solver
+    processes, one of them killed before it starts: the process is replaced, and the choice and every
+    candidate's figures are those of the same initialisation in this process, to the bit."""
+    camera, _, problem = tracked_through_the_guess(2)
+    expected, expected_report = initialise_camera(problem)
+    monkeypatch.setattr(local_mapping, "solver_processes", lambda: 2)
+    mapping = LocalMapping(OnlineCamera(problem.calibration, "guess"), synchronous=False)
+    try:
+        assert len(mapping._solvers) == 2
+        mapping._solvers[1].submit(int).result()  # started, so that there is a process to kill
+        (pid,) = list(mapping._solvers[1]._processes)
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        while not mapping._solvers[1]._broken and time.monotonic() < deadline:  # the pool has seen it die
+            time.sleep(0.01)
+        used = []
+        spread = mapping._map_in_processes
+        monkeypatch.setattr(mapping, "_map_in_processes", lambda f, items: used.append(len(items)) or spread(f, items))
+        solution = mapping._solve(problem, hypotheses=True)
+        assert used == [len(expected_report)]  # the candidates went through the spread
+        assert mapping.solver_restarts == 1
+        np.testing.assert_array_equal(np.array(mapping.initialisation_report), np.array(expected_report))
+        np.testing.assert_array_equal(solution.poses, expected.poses)
+        assert solution.calibration.fx == expected.calibration.fx
+        assert abs(solution.calibration.fx / camera.fx - 1) < 0.02
+    finally:
+        mapping.close()
+
+
+def test_solver_processes_leave_a_core_for_tracking(monkeypatch):
+    for cores, processes in [(1, 1), (2, 1), (3, 2), (8, 4), (64, 4)]:
+        monkeypatch.setattr(os, "sched_getaffinity", lambda _pid, n=cores: set(range(n)))
+        assert solver_processes() == processes
 
 
 def test_the_solver_process_loads_its_modules_before_the_first_solve_and_never_torch():

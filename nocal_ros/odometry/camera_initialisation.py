@@ -20,7 +20,9 @@ same choice, between the plain solve of a whole map and its rebuild through the 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -162,32 +164,46 @@ def _in_frame_of(problem: WindowProblem, poses: np.ndarray, points: np.ndarray, 
 
 
 def initialise_camera(problem: WindowProblem, focal_shares: tuple[float, ...] = FOCAL_HYPOTHESES,
-                      starts: tuple[CameraCalibration, ...] = ()) -> tuple[WindowSolution, list[tuple[float, float, float]]]:
+                      starts: tuple[CameraCalibration, ...] = (),
+                      map_candidates: Callable[..., Iterable] = map) -> tuple[WindowSolution, list[tuple[float, float, float]]]:
     """The best of the plain solve of ``problem`` and a rebuild-and-solve per focal hypothesis.
 
     ``problem``: every keyframe of the map with keyframe 0 fixed and a ``scale_pair``, the camera free.
     ``starts``: cameras to rebuild through besides the hypotheses' (the end of a replay rebuilds its map
     through the converged camera alone, ``focal_shares=()``).
+    ``map_candidates``: ``map``'s signature, applied to :func:`camera_candidate` over the candidates' starts
+    (``None``, the plain solve, first); the local mapping of a live stream spreads them over its solver
+    processes. Each candidate seeds its own draws, so the choice is the same either way.
     Returns the chosen solution (its ``points`` NaN and its ``inliers`` False where a rebuild left a
     landmark out) and ``(start focal, solved focal, score)`` per candidate, the plain solve first.
     """
-    plain = bundle_adjust(problem)
-    report = [(problem.calibration.fx, plain.calibration.fx, reprojection_score(problem, plain) if plain.success else np.inf)]
-    scored = [(report[0][2], plain)] if plain.success else []
     like = problem.calibration
     hypotheses = [CameraCalibration.pinhole(like.width, like.height, share * like.width, D=np.zeros_like(like.D),
                                             distortion_model=like.distortion_model, camera_name=like.camera_name)
                   for share in focal_shares]
-    for start in (*hypotheses, *starts):
-        solution = _rebuilt_solution(problem, start)
-        if solution is None:
-            report.append((start.fx, np.nan, np.inf))
-            continue
-        report.append((start.fx, solution.calibration.fx, reprojection_score(problem, solution)))
-        scored.append((report[-1][2], solution))
+    candidates = list(map_candidates(partial(camera_candidate, problem), [None, *hypotheses, *starts]))
+    report = [row for row, _ in candidates]
+    plain = candidates[0][1]
+    scored = [(row[2], solution) for row, solution in candidates
+              if solution is not None and (solution is not plain or plain.success)]
     if not scored:
         return plain, report
     return min(scored, key=lambda pair: pair[0])[1], report
+
+
+def camera_candidate(problem: WindowProblem, start: CameraCalibration | None
+                     ) -> tuple[tuple[float, float, float], WindowSolution | None]:
+    """One candidate of :func:`initialise_camera`: the plain solve of ``problem`` (``start`` None) or its
+    rebuild through ``start``, solved; ``((start focal, solved focal, score), solution)``, the score
+    infinite where the solve failed (the plain solve is returned all the same, the rebuild is None)."""
+    if start is None:
+        plain = bundle_adjust(problem)
+        score = reprojection_score(problem, plain) if plain.success else np.inf
+        return (problem.calibration.fx, plain.calibration.fx, score), plain
+    solution = _rebuilt_solution(problem, start)
+    if solution is None:
+        return (start.fx, np.nan, np.inf), None
+    return (start.fx, solution.calibration.fx, reprojection_score(problem, solution)), solution
 
 
 def _rebuilt_solution(problem: WindowProblem, start: CameraCalibration) -> WindowSolution | None:

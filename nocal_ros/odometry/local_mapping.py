@@ -58,6 +58,7 @@ calibration, confirmed or not yet decided, is checked again by each new map.
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -86,6 +87,23 @@ INITIALISATION_FOCAL_STD = 0.15
 START_CHECK_KEYFRAMES = 10
 #: Solver processes local mapping starts again after one died, at most (then its solves fail, logged).
 SOLVER_RESTARTS = 3
+#: Most solver processes a live stream's local mapping keeps. Its window solves take the first, and a
+#: camera initialisation's twelve candidates are spread over all of them: on KITTI's clip at 10 Hz the
+#: first took 336 ms in two processes against 554 ms in one, and the camera was solved two frames sooner
+#: (docs/RESULTS.md). It keeps a core for tracking: at 30 Hz on a 2-core machine two processes took it,
+#: and frames were dropped.
+MAX_SOLVER_PROCESSES = 4
+
+
+def solver_processes() -> int:
+    """Solver processes for this machine: its cores (those this process may run on) but one, at least one."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(MAX_SOLVER_PROCESSES, cores - 1))
+
+
 #: Keyframes each keyframe is searched from at the end of a replay (:func:`search_by_projection`).
 SEARCH_SOURCES = 8
 #: Fewest degrees between the two rays of a new landmark (smaller angles give depth from noise).
@@ -177,8 +195,9 @@ class LocalMapping:
     A solve is Python and numpy on small arrays, which hold Python's global interpreter lock for most
     of their time (GTSAM, the solver before, held it for a whole solve: a thread beside it stalled;
     BENCHMARKS.md), so in a thread a bundle adjustment would slow tracking down. The worker thread
-    therefore hands each solve to a worker process and waits for it without the lock. That process is
-    spawned, so it first runs the program's main script again, its top-level imports included: a program
+    therefore hands each solve to a worker process and waits for it without the lock; on a machine with
+    cores to spare (:func:`solver_processes`) a camera initialisation's candidates go to several. They are
+    spawned, so each first runs the program's main script again, its top-level imports included: a program
     that runs the estimator asynchronously should import torch (or rclpy) inside functions, not at the top
     of its main script, as the ROS executables do (:mod:`nocal_ros.ros.entry_points`).
     When keyframes arrive faster than they are mapped, the waiting ones are all triangulated and one
@@ -200,11 +219,11 @@ class LocalMapping:
         self._idle = threading.Event()
         self._idle.set()
         self._thread: threading.Thread | None = None
-        self._solver: Any = None
+        self._solvers: list[Any] = []
         if not synchronous:
-            # Start the solver process now, before the first keyframe: spawning it and importing the
+            # Start the solver processes now, before the first keyframe: spawning one and importing the
             # solver would otherwise delay the first bundle adjustment (seconds under load, measured).
-            self._solver = start_solver()
+            self._solvers = [start_solver() for _ in range(solver_processes())]
 
     # -- thread handling ---------------------------------------------------------------------------
 
@@ -236,9 +255,9 @@ class LocalMapping:
             self._queue.put(None)
             self._thread.join(timeout=10.0)
             self._thread = None
-        if self._solver is not None:
-            self._solver.shutdown(wait=True, cancel_futures=True)
-            self._solver = None
+        for solver in self._solvers:
+            solver.shutdown(wait=True, cancel_futures=True)
+        self._solvers = []
 
     def _work(self) -> None:
         while True:
@@ -271,15 +290,20 @@ class LocalMapping:
         from nocal_ros.odometry.camera_initialisation import initialise_camera
 
         start = time.perf_counter()
-        solve = bundle_adjust
         if hypotheses:
             solve = initialise_camera
         elif rebuild:
             solve = partial(initialise_camera, focal_shares=(), starts=(problem.calibration,))
+        else:
+            solve = bundle_adjust
         if self.synchronous:
             solution = solve(problem)
+        elif solve is not bundle_adjust and len(self._solvers) > 1:
+            # A camera initialisation's candidates side by side, one per solver process; each seeds its
+            # own draws, so the choice is the one a single process makes.
+            solution = solve(problem, map_candidates=self._map_in_processes)
         else:
-            solution = self._solve_in_process(solve, problem)
+            solution = self._run_in_process(0, solve, problem)
         if hypotheses:
             solution, self.initialisation_report = solution
         elif rebuild:
@@ -287,27 +311,61 @@ class LocalMapping:
         self.solve_milliseconds.append((time.perf_counter() - start) * 1e3)
         return solution
 
-    def _solve_in_process(self, solve: Any, problem: Any) -> Any:
-        """``solve(problem)`` in the solver process; a process that died (killed, out of memory) is
+    def _run_in_process(self, index: int, solve: Any, *args: Any) -> Any:
+        """``solve(*args)`` in solver process ``index``; a process that died (killed, out of memory) is
         replaced, up to :data:`SOLVER_RESTARTS` times, so that mapping goes on instead of failing every
         later keyframe."""
         from concurrent.futures.process import BrokenProcessPool
 
         try:
-            return self._solver_pool().submit(solve, problem).result()
-        except BrokenProcessPool:
-            if self.solver_restarts >= SOLVER_RESTARTS:
-                raise  # one that dies again and again is a fault to report, not to hide
-            self.solver_restarts += 1
-            log.warning("local mapping: the bundle adjustment's process died; starting a new one")
-            self._solver.shutdown(wait=False, cancel_futures=True)
-            self._solver = None
-            return self._solver_pool().submit(solve, problem).result()
+            return self._solver_pool(index).submit(solve, *args).result()
+        except BrokenProcessPool as error:
+            self._replace_solver(index, error)
+            return self._solver_pool(index).submit(solve, *args).result()
 
-    def _solver_pool(self) -> Any:
-        if self._solver is None:
-            self._solver = start_solver()
-        return self._solver
+    def _map_in_processes(self, function: Any, items: Any) -> list[Any]:
+        """``[function(item) for item in items]`` over the solver processes, each taking the next item
+        when it is done with one; a process that died is replaced as in :meth:`_run_in_process`."""
+        from concurrent.futures import FIRST_COMPLETED, wait
+        from concurrent.futures.process import BrokenProcessPool
+
+        items = list(items)
+        results: list[Any] = [None] * len(items)
+        todo = list(range(len(items)))
+        running: dict[Any, tuple[int, int]] = {}  # future -> (item, process)
+        idle = list(range(max(1, len(self._solvers))))
+        while todo or running:
+            while idle and todo:
+                index, item = idle.pop(0), todo.pop(0)
+                try:
+                    future = self._solver_pool(index).submit(function, items[item])
+                except BrokenProcessPool as error:  # the pool already knows its process died
+                    self._replace_solver(index, error)
+                    future = self._solver_pool(index).submit(function, items[item])
+                running[future] = (item, index)
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                item, index = running.pop(future)
+                try:
+                    results[item] = future.result()
+                except BrokenProcessPool as error:
+                    self._replace_solver(index, error)
+                    todo.insert(0, item)
+                idle.append(index)
+        return results
+
+    def _replace_solver(self, index: int, error: Exception) -> None:
+        if self.solver_restarts >= SOLVER_RESTARTS:
+            raise error  # one that dies again and again is a fault to report, not to hide
+        self.solver_restarts += 1
+        log.warning("local mapping: a bundle adjustment's process died; starting a new one")
+        self._solvers[index].shutdown(wait=False, cancel_futures=True)
+        self._solvers[index] = start_solver()
+
+    def _solver_pool(self, index: int = 0) -> Any:
+        while len(self._solvers) <= index:
+            self._solvers.append(start_solver())
+        return self._solvers[index]
 
     # -- the work ----------------------------------------------------------------------------------
 
