@@ -446,10 +446,19 @@ def fit_distortion_coefficients(
 
     ``plumb_bob`` is linear in ``(k1, k2, p1, p2, k3)`` (``fix_k3``: ``k3 = 0``, the form bundle adjusters
     such as GTSAM's Cal3DS2 use); ``rational_polynomial`` is refined by Levenberg-Marquardt from the
-    plumb_bob solution (``k4 = k5 = k6 = 0``).
+    plumb_bob solution (``k4 = k5 = k6 = 0``); ``equidistant`` is linear in ``(k1, k2, k3, k4)``.
     """
     x, y = undistorted[:, 0], undistorted[:, 1]
     r2 = x * x + y * y
+    if distortion_model == "equidistant":
+        # x_d = x theta (1 + k1 theta^2 + ... + k4 theta^8) / r with theta = atan(r), as cv2.fisheye.
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        along = np.where(r > 1e-12, theta / np.where(r > 1e-12, r, 1.0), 1.0)
+        powers = np.stack([theta ** (2 * k) for k in range(1, 5)], -1) * along[:, None]
+        A = np.concatenate((powers * x[:, None] * fx, powers * y[:, None] * fy))
+        b = np.concatenate(((distorted[:, 0] - x * along) * fx, (distorted[:, 1] - y * along) * fy))
+        return np.linalg.lstsq(A, b, rcond=None)[0]
     # plumb_bob is linear in (k1, k2, p1, p2, k3): stack the x rows (weighted by fx) and y rows (by fy).
     rows_x = np.stack((x * r2, x * r2**2, 2 * x * y, r2 + 2 * x * x, x * r2**3), -1) * fx
     rows_y = np.stack((y * r2, y * r2**2, r2 + 2 * y * y, 2 * x * y, y * r2**3), -1) * fy

@@ -177,6 +177,23 @@ def test_least_squares_recovers_exact_plumb_bob_coefficients():
     assert np.abs(reprojected - pixels).max() < 0.05
 
 
+def test_least_squares_recovers_equidistant_coefficients_that_project_as_opencvs_fisheye():
+    """The equidistant fit is checked against ``cv2.fisheye.projectPoints``: a lens's own distortion of its
+    undistorted points returns its four coefficients."""
+    import cv2
+
+    K = np.array([[400.0, 0, 319.5], [0, 401.0, 239.5], [0, 0, 1]])  # 57 deg off axis at the corners
+    D = np.array([-0.03, 0.012, -0.004, 0.0008])
+    fisheye = CameraCalibration(640, 480, K, D, "equidistant")
+    pixels = image_pixels(640, 480, step=20)
+    undistorted = fisheye.undistorted_normalised(pixels)
+    points = np.concatenate((undistorted, np.ones((len(undistorted), 1))), 1)[:, None]
+    projected = cv2.fisheye.projectPoints(points, np.zeros(3), np.zeros(3), K, D)[0][:, 0]
+    np.testing.assert_allclose(projected, pixels, atol=1e-6)
+    distorted = np.stack(((pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1]), -1)
+    np.testing.assert_allclose(fit_distortion_coefficients(undistorted, distorted, "equidistant", 400.0, 401.0), D, atol=1e-9)
+
+
 def test_camera_from_calibration_reproduces_the_lens(lens_and_camera):
     calibration, camera = lens_and_camera
     learnt = camera.undistortion_map().reshape(-1, 2)

@@ -421,6 +421,44 @@ def test_a_given_lens_the_bundle_adjustment_cannot_hold_is_converted_with_its_re
     assert published == converted and published_residual == pytest.approx(residual, rel=1e-12)
 
 
+def test_auto_starts_a_learnt_fisheye_as_equidistant_and_a_learnt_pinhole_as_plumb_bob():
+    """``distortion_model="auto"`` (the default) with a learnt camera: a fisheye (a fine-tuned model's
+    camera, here learnt from an equidistant lens 97 degrees off axis at its corners) that plumb_bob
+    (k3 = 0) cannot hold starts the online camera as equidistant, at the learnt focal length; a barrel
+    pinhole stays plumb_bob. ``plumb_bob`` asked for keeps plumb_bob, and ``equidistant`` starts from
+    f = width as before."""
+    from nocal_ros.camera import CameraModel
+    from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry.calibration import AUTO_EQUIDISTANT_PX, calibration_from_learnt_camera
+
+    fisheye = CameraCalibration(160, 120, np.array([[60.0, 0, 79.5], [0, 60.0, 59.5], [0, 0, 1]]), np.zeros(4), "equidistant")
+    pinhole = CameraCalibration(160, 120, np.array([[120.0, 0, 79.5], [0, 121.0, 59.5], [0, 0, 1]]),
+                                np.array([-0.2, 0.05, 0.0, 0.0, 0.0]), "plumb_bob")
+    learnt_fisheye, learnt_pinhole = CameraModel.from_calibration(fisheye), CameraModel.from_calibration(pinhole)
+    plumb_bob, plumb_bob_px = calibration_from_learnt_camera(learnt_fisheye, "plumb_bob")
+    equidistant, equidistant_px = calibration_from_learnt_camera(learnt_fisheye, "equidistant")
+    assert plumb_bob_px > AUTO_EQUIDISTANT_PX and equidistant_px < 0.5 * plumb_bob_px
+    assert calibration_from_learnt_camera(learnt_fisheye, "auto")[0].distortion_model == "equidistant"
+    assert calibration_from_learnt_camera(learnt_pinhole, "auto")[0].distortion_model == "plumb_bob"
+
+    def started(camera, distortion_model):
+        model = PoseModel(predict_pose=TrajectoryPoses(random_trajectory(3, seed=2)), input_size=(32, 24), camera=camera)
+        estimator = OdometryEstimator(model, distortion_model=distortion_model, synchronous_mapping=True)
+        try:
+            return estimator._starting_calibration(160, 120)
+        finally:
+            estimator.close()
+
+    calibration, source, residual = started(learnt_fisheye, "auto")
+    assert (calibration.distortion_model, source) == ("equidistant", "model")
+    assert calibration.fx == pytest.approx(60.0, rel=1e-3) and residual == pytest.approx(equidistant_px)
+    np.testing.assert_allclose(calibration.D, equidistant.D)
+    assert started(learnt_fisheye, "plumb_bob")[0].distortion_model == "plumb_bob"
+    calibration, source, _ = started(learnt_fisheye, "equidistant")
+    assert (calibration.distortion_model, source, calibration.fx) == ("equidistant", "prior", 160.0)
+    assert started(learnt_pinhole, "auto")[0].distortion_model == "plumb_bob"
+
+
 def test_calibration_given_at_construction_is_published_without_a_learnt_camera():
     from nocal_ros.lens import CameraCalibration
 

@@ -78,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", type=Path, default=None,
                         help="camera_calibration YAML to start the online camera from (default: the model's learnt camera)")
     parser.add_argument("--distortion-model", default="auto", choices=("auto", "plumb_bob", "equidistant"),
-                        help="the online camera's lens model (auto: plumb_bob)")
+                        help="the online camera's lens model (auto: plumb_bob, or equidistant for a learnt camera plumb_bob cannot hold, as a fine-tuned fisheye's; equidistant starts from f = width)")
     parser.add_argument("--arm-topic", default="/arm/pose",
                         help="arm poses of the camera (PoseStamped) that make the scale metric, when the bag has them; '' to ignore")
     parser.add_argument("--camera-height", type=arg.positive_float, default=None, metavar="M",

@@ -130,12 +130,29 @@ def calibration_information(calibration: CameraCalibration, std: dict) -> np.nda
     return information
 
 
-def calibration_from_learnt_camera(camera: Any) -> tuple[CameraCalibration, float]:
-    """A learnt ``CameraModel`` as a VO camera (``plumb_bob`` with ``k3 = 0``): ``(calibration, rms residual px)``.
+#: ``"auto"`` starts the VO from a learnt camera as ``equidistant`` where ``plumb_bob`` (``k3 = 0``) misses it
+#: by more than this RMS in the learnt camera's pixels and ``equidistant`` by at most half as much. A third
+#: of tracking's PnP threshold (1.5 px); the shipped model's pinhole fits both to 0.000 px, the field
+#: bag's fine-tuned fisheye plumb_bob 9.2 px, equidistant 1.8 px (docs/RESULTS.md).
+AUTO_EQUIDISTANT_PX = 0.5
+
+
+def calibration_from_learnt_camera(camera: Any, distortion_model: str = "plumb_bob") -> tuple[CameraCalibration, float]:
+    """A learnt ``CameraModel`` as a VO camera: ``(calibration, rms residual px)``, ``plumb_bob`` with
+    ``k3 = 0`` or ``equidistant``; ``"auto"``: plumb_bob unless equidistant fits a lens plumb_bob cannot
+    hold (:data:`AUTO_EQUIDISTANT_PX`).
 
     The camera's own least-squares fit (:meth:`~nocal_ros.camera.CameraModel.fit_parametric`).
     """
-    fit = camera.fit_parametric("plumb_bob", camera_name="nocal", fix_k3=True)
+    if distortion_model == "auto":
+        plumb_bob = calibration_from_learnt_camera(camera, "plumb_bob")
+        if plumb_bob[1] <= AUTO_EQUIDISTANT_PX:
+            return plumb_bob
+        fisheye = calibration_from_learnt_camera(camera, "equidistant")
+        return fisheye if fisheye[1] <= 0.5 * plumb_bob[1] else plumb_bob
+    if distortion_model not in VO_MODELS:
+        raise ValueError(f"the VO's camera is one of {VO_MODELS} or auto, got {distortion_model!r}")
+    fit = camera.fit_parametric(distortion_model, camera_name="nocal", fix_k3=distortion_model == "plumb_bob")
     return fit.calibration, fit.rms_px
 
 

@@ -277,8 +277,10 @@ class OdometryEstimator:
         device: ``"auto"``, ``"cpu"``, ``"cuda"``... (ignored for a :class:`PoseModel`).
         T_base_cam: static ``(4, 4)`` pose of the camera optical frame in the base frame.
         frame_period_s: the camera's frame period; None estimates it from the stamps.
-        distortion_model: the online camera's lens model: ``"plumb_bob"`` (``"auto"``: the same) or
-            ``"equidistant"`` (fisheye).
+        distortion_model: the online camera's lens model: ``"plumb_bob"`` or ``"equidistant"`` (fisheye);
+            ``"auto"``: plumb_bob, except a learnt camera (a fine-tuned model's) that plumb_bob cannot
+            hold and equidistant can (:func:`~nocal_ros.odometry.calibration.calibration_from_learnt_camera`).
+            ``"equidistant"`` starts from ``f = width``.
         precision: ``"fp32"``, or ``"fp16"`` / ``"bf16"`` autocast on CUDA.
         cuda_graphs: capture the pose head in CUDA graphs on CUDA (falls back to eager if capture fails).
         channels_last: run the convolutions in channels-last layout (faster on CPU; see BENCHMARKS.md).
@@ -333,6 +335,7 @@ class OdometryEstimator:
         self.device_request = device
         self.frame_period_s = frame_period_s
         self.distortion_model = "plumb_bob" if distortion_model == "auto" else distortion_model
+        self._lens_request = distortion_model  # "auto" may start a learnt fisheye as equidistant
         self.precision = precision
         self.cuda_graphs = cuda_graphs
         self.synchronous_mapping = bool(synchronous_mapping)
@@ -494,9 +497,9 @@ class OdometryEstimator:
             calibration, residual = self._given_vo_calibration
             return _resized(calibration, width, height, "the given calibration"), "file", residual * width / calibration.width
         learnt = self.model.camera
-        if learnt is not None and self.distortion_model == "plumb_bob":
+        if learnt is not None and self._lens_request in ("auto", "plumb_bob"):
             if abs(learnt.width / learnt.height - width / height) < 1e-3:
-                calibration, residual = calibration_from_learnt_camera(learnt)
+                calibration, residual = calibration_from_learnt_camera(learnt, self._lens_request)
                 return calibration.scaled(width, height), "model", residual * width / learnt.width
             log.warning("odometry: the model's camera is %dx%d, the images %dx%d (another shape): starting from f = width",
                         learnt.width, learnt.height, width, height)

@@ -33,7 +33,7 @@ Parameters (see config/odometry.yaml):
     queue_size: subscription depth (sensor-data QoS, best effort);  latest_only: true = drop stale
         frames (the mailbox), false = process every frame in order (a bounded queue of queue_size)
     frame_period: camera frame period in s (0 = from the stamps);  distortion_model: the online camera's
-        lens, auto (plumb_bob) | plumb_bob | equidistant;  tf_timeout: seconds to wait for base -> camera at a frame;
+        lens, auto (plumb_bob; equidistant for a learnt fisheye) | plumb_bob | equidistant;  tf_timeout: seconds to wait for base -> camera at a frame;
         diagnostics_period: seconds;  max_delay, max_age: seconds before /diagnostics warns;
         threads: torch CPU threads (0 = torch's default; 1 is fastest for one pair at a time on small
         loaded machines, see BENCHMARKS.md).
