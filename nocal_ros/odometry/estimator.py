@@ -334,8 +334,7 @@ class OdometryEstimator:
         self.channels_last = channels_last
         self.device_request = device
         self.frame_period_s = frame_period_s
-        self.distortion_model = "plumb_bob" if distortion_model == "auto" else distortion_model
-        self._lens_request = distortion_model  # "auto" may start a learnt fisheye as equidistant
+        self.distortion_model = distortion_model
         self.precision = precision
         self.cuda_graphs = cuda_graphs
         self.synchronous_mapping = bool(synchronous_mapping)
@@ -497,13 +496,14 @@ class OdometryEstimator:
             calibration, residual = self._given_vo_calibration
             return _resized(calibration, width, height, "the given calibration"), "file", residual * width / calibration.width
         learnt = self.model.camera
-        if learnt is not None and self._lens_request in ("auto", "plumb_bob"):
+        if learnt is not None and self.distortion_model in ("auto", "plumb_bob"):
             if abs(learnt.width / learnt.height - width / height) < 1e-3:
-                calibration, residual = calibration_from_learnt_camera(learnt, self._lens_request)
+                calibration, residual = calibration_from_learnt_camera(learnt, self.distortion_model)
                 return calibration.scaled(width, height), "model", residual * width / learnt.width
             log.warning("odometry: the model's camera is %dx%d, the images %dx%d (another shape): starting from f = width",
                         learnt.width, learnt.height, width, height)
-        return prior_calibration(width, height, self.distortion_model), "prior", 0.0
+        prior_model = "equidistant" if self.distortion_model == "equidistant" else "plumb_bob"  # auto's prior: plumb_bob
+        return prior_calibration(width, height, prior_model), "prior", 0.0
 
     def set_calibration(self, calibration: "CameraCalibration") -> None:
         """Restart the online camera from ``calibration`` (scaled to the frames' size); the pose is kept.
