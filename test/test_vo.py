@@ -686,19 +686,21 @@ def test_odometry_does_not_jump_where_a_map_starts_through_a_guessed_camera():
 def test_published_rotation_covariance_covers_the_steps_measured_through_the_guessed_camera():
     """The first steps are measured through the f = width guess, 78 % long for this camera (r160_205's),
     and were published 1.8-2.3 deg off with a covariance of 0.07-0.1 deg per axis. With the camera's
-    uncertainty in the step covariance, the mean rotation NEES over 30 steps is below the 99 % bound of
-    one consistent step (measured 1.2, 29 of 30 steps within it; 52 and 24 of 30 without it), and the
+    uncertainty in the step covariance, the mean rotation NEES over the steps is below the 99 % bound of
+    one consistent step (measured 1.2 over 30 steps, 29 within it, 52 and 24 of 30 without it; 0.60 over
+    35 steps, all within it, on the AMD EPYC below), and the
     steps tracked once the camera's focal length is known to within ``uncertain_focal_share`` are
     reported at a tenth of a degree or so again, the camera's uncertainty no longer in them (measured:
     0.10-0.23 deg per axis, against 0.37-0.68 deg while it is not; how long the camera stays uncertain
     after its first window differs from one CPU to another: 5 frames on an Intel Xeon, 7 and then
-    3 more on an AMD EPYC)."""
+    3 more on an AMD EPYC, and on another AMD EPYC the first window came at frame 24, not 8, leaving 4
+    settled steps of 30: so 35 steps, 9 of them settled there)."""
     from nocal_ros.data.synthetic import random_calibration
     from nocal_ros.evaluation import CHI2_3DOF_99, rotation_consistency
     from nocal_ros.odometry.tracking import TrackingSettings
 
     camera = random_calibration(np.random.default_rng([205, 7]), WIDTH, HEIGHT)
-    frames = render_sequence(camera, 31, 205, split="test")
+    frames = render_sequence(camera, 36, 205, split="test")
     estimator = OdometryEstimator(synchronous_mapping=True)
     share = TrackingSettings().uncertain_focal_share
     results, known = [], []
@@ -710,7 +712,7 @@ def test_published_rotation_covariance_covers_the_steps_measured_through_the_gue
     dt = np.diff(frames.stamps_ns) * 1e-9
     covariances = np.array([r.twist_covariance[3:, 3:] * step**2 for r, step in zip(results[1:], dt)])
     consistency = rotation_consistency(np.array([r.T_odom_cam for r in results]), frames.ground_truth, covariances)
-    assert consistency["pairs"] == 30
+    assert consistency["pairs"] == 35
     assert consistency["mean_nees"] < CHI2_3DOF_99 and consistency["within_99"] >= 0.9
     std_deg = np.degrees(np.sqrt(covariances.diagonal(axis1=1, axis2=2).max(axis=1)))
     settled = np.array(known[1:])  # steps into frames tracked through a camera known to within the share
