@@ -17,14 +17,14 @@ pytest.importorskip("tf2_ros", reason="tf2_ros is not installed (no ROS 2 here);
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
+from nav_msgs.msg import Odometry, Path  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rclpy.time import Time  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
-from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 from sensor_msgs.srv import SetCameraInfo  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
@@ -78,7 +78,11 @@ class Harness(Node):
         self.camera_info: list[CameraInfo] = []
         self.tf: list = []
         self.diagnostics: list[DiagnosticArray] = []
+        self.paths: list[Path] = []
+        self.clouds: list[PointCloud2] = []
         self.create_subscription(Odometry, "odom", self.odometry.append, 50)
+        self.create_subscription(Path, "keyframe_path", self.paths.append, 10)
+        self.create_subscription(PointCloud2, "map_points", self.clouds.append, 10)
         self.create_subscription(CameraInfo, "camera_info", self.camera_info.append, 50)
         self.create_subscription(TFMessage, "/tf", lambda m: self.tf.extend(m.transforms), 50)
         self.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 50)
@@ -220,6 +224,35 @@ def predict(network, image_i, image_j) -> np.ndarray:
 
     with torch.no_grad():
         return network.predict_pose(tensor(image_i), tensor(image_j))[0].double().numpy()
+
+
+def test_the_vo_publishes_its_keyframe_path_and_map_points_in_odom(ros):
+    """method vo with the shipped model on a rendered room: ``keyframe_path`` holds the keyframes (stamps of
+    published images, increasing) in odom, the newest where /odom was at its stamp once the map stands
+    still, and ``map_points`` the landmarks, read back by sensor_msgs_py (the independent reader)."""
+    point_cloud2 = pytest.importorskip("sensor_msgs_py.point_cloud2", reason="sensor_msgs_py is not installed")
+    camera = CameraCalibration.pinhole(160, 120, 118.0)
+    sequence = render_sequence(camera, 30, seed=7, split="test")
+    node, harness = ros(method="vo", model_path="", map_period=0.2)
+    stamps = publish_sequence(harness, sequence.images)
+    assert wait_for(lambda: node.estimator.wait_for_mapping(0.1) and node.estimator.map_snapshot().map_id > 0, timeout=30.0)
+    snapshot = node.estimator.map_snapshot()
+    count = len(harness.paths)
+    assert wait_for(lambda: len(harness.paths) > count + 1 and len(harness.clouds) > count + 1, timeout=10.0)
+    path, cloud = harness.paths[-1], harness.clouds[-1]
+    assert path.header.frame_id == "odom" and cloud.header.frame_id == "odom"
+    path_stamps = [stamp_to_ns(pose.header.stamp) for pose in path.poses]
+    assert len(path_stamps) == len(snapshot.stamps_ns) >= 3 and set(path_stamps) <= set(stamps)
+    assert path_stamps == sorted(set(path_stamps)) and stamp_to_ns(path.header.stamp) == path_stamps[-1]
+    published = {stamp_to_ns(m.header.stamp): pose_of(m) for m in harness.odometry}
+    newest = path.poses[-1].pose
+    T_newest = make_transform(quaternion_to_matrix(np.array([newest.orientation.x, newest.orientation.y, newest.orientation.z,
+                                                             newest.orientation.w])),
+                              np.array([newest.position.x, newest.position.y, newest.position.z]))
+    np.testing.assert_allclose(T_newest, published[path_stamps[-1]], atol=1e-6)
+    points = point_cloud2.read_points_numpy(cloud, field_names=("x", "y", "z"))
+    assert points.shape == (len(snapshot.points), 3) and len(points) > 20
+    np.testing.assert_allclose(points, snapshot.points, atol=1e-4)
 
 
 def test_diagnostics_report_latency_rate_drops_model_and_calibration(ros, frames):

@@ -7,6 +7,9 @@ Writes into ``DIR``:
 * ``trajectory.tum``: ``stamp x y z qx qy qz qw`` of the base frame in ``odom``, as published;
 * ``trajectory_final.tum``: the same frames posed again through the final map and camera at the end of
   the replay (:mod:`nocal_ros.odometry.trajectory`; the VO only, when the estimator records them);
+* ``keyframes.tum``: the VO's keyframes as its map held them at the end of the stream (the node's
+  ``keyframe_path``; ORB-SLAM3's ``KeyFrameTrajectory.txt``), base frame in ``odom``, since the last restart;
+* ``map_points.ply``: the landmarks of that map in ``odom`` (the node's ``map_points``), ASCII PLY;
 * ``calibration.yaml``: the online camera at the end of the stream, in ROS ``camera_calibration`` format;
 * ``calibration_final.yaml``: the camera of the final solve over the whole map, beside
   ``trajectory_final.tum``;
@@ -52,8 +55,8 @@ from nocal_ros.geometry import (
 
 log = logging.getLogger(__name__)
 
-OUTPUT_NAMES = ("odometry", "trajectory.tum", "trajectory_final.tum", "calibration.yaml", "calibration_final.yaml",
-                "report.json", "trajectory.png")
+OUTPUT_NAMES = ("odometry", "trajectory.tum", "trajectory_final.tum", "keyframes.tum", "map_points.ply",
+                "calibration.yaml", "calibration_final.yaml", "report.json", "trajectory.png")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -318,6 +321,15 @@ def write_tum(path: Path, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
     write_atomic(path, "".join(lines))
 
 
+def write_ply(path: Path, points: np.ndarray) -> None:
+    """Points ``(N, 3)`` as an ASCII PLY of vertices (what MeshLab, CloudCompare and Open3D read), written atomically."""
+    from nocal_ros.files import write_atomic
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    header = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    write_atomic(path, header + "".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in points.tolist()))
+
+
 def time_segments(stamps_ns: np.ndarray) -> list[tuple[int, int]]:
     """``[start, end)`` index ranges of ``stamps_ns`` whose stamps strictly increase: a stamp at or before
     the one before it (time went back, so the estimator restarted its odom frame) starts a new range."""
@@ -475,6 +487,10 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                     len(segments), first, last - 1)
     stamps_ns = all_stamps[first:last]
     write_tum(stage["trajectory.tum"], stamps_ns, np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
+    snapshot = estimator.map_snapshot()  # before the final solve moves the map
+    if len(snapshot.stamps_ns):
+        write_tum(stage["keyframes.tum"], snapshot.stamps_ns, snapshot.T_odom_base)
+        write_ply(stage["map_points.ply"], snapshot.points)
     calibration = residual = None
     if frames_in:
         calibration, residual = estimator.camera_info()  # the online camera at the end of the bag

@@ -140,6 +140,7 @@ from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFram
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
+    from nocal_ros.odometry.map import LocalMap
     from nocal_ros.odometry.frontend import TrackedFrame
     from nocal_ros.odometry.map import LocalMap
 
@@ -186,6 +187,9 @@ MIN_GROUND_MOTION_SAMPLES = 2
 ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
 METHODS = ("vo", "pose_head")
+#: Keyframes of the maps before the current one kept for :meth:`OdometryEstimator.map_snapshot`'s path (the
+#: newest; about 10 minutes of keyframes at 15 a second).
+PATH_HISTORY = 10_000
 
 
 class FrameError(NocalError):
@@ -261,6 +265,35 @@ class OdometryCounters:
     lost_frames: int = 0
     pose_head_fallbacks: int = 0  # lost frames bridged by the pose head
     guess_rescues: int = 0  # frames PnP posed through the guessed camera only with a wider threshold
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """The VO's keyframes and landmarks in ``odom`` and metres, as they stand (what ORB-SLAM3's viewer and
+    rviz show: the node publishes them as ``nav_msgs/Path`` and ``sensor_msgs/PointCloud2``).
+
+    The current map is placed so that its newest keyframe sits where odometry published that frame, so
+    the path ends where ``/odom`` was then; its older keyframes and its landmarks are where bundle
+    adjustment has since put them, at the current scale. The keyframes of the maps before it (since the
+    last reset; lost and re-initialised) stay as they were when their map was left.
+
+    Attributes:
+        stamps_ns: ``(N,)`` the keyframes' stamps, oldest first.
+        T_odom_base: ``(N, 4, 4)`` their base poses in ``odom``.
+        map_ids: ``(N,)`` the VO map each keyframe belongs to.
+        points: ``(M, 3)`` the current map's landmarks in ``odom`` (m).
+        point_ids: ``(M,)`` their ids (the ids of the tracks they were triangulated from).
+        map_id: the current map's id (0: no map yet).
+        scale_source: what made the current map metric: ``"arm"``, ``"ground"``, ``"pose_head"`` or ``"none"``.
+    """
+
+    stamps_ns: np.ndarray
+    T_odom_base: np.ndarray
+    map_ids: np.ndarray
+    points: np.ndarray
+    point_ids: np.ndarray
+    map_id: int = 0
+    scale_source: str = "none"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -455,6 +488,11 @@ class OdometryEstimator:
             self._map_scales: dict[int, float] = {}  # map id -> the last scale its poses were published with
             self._map_scale_sources: dict[int, str] = {}  # map id -> where that scale came from
             self._previous_focal_std = 0.0  # the online camera's relative focal std when the last frame was published
+            # map_snapshot's path: the maps left behind, (stamp, map id, T_odom_cam) per keyframe, and the current
+            # map (id, map) with its last placement in odom (T_odom_map, metres)
+            self._earlier_path: deque[tuple[int, int, np.ndarray]] = deque(maxlen=PATH_HISTORY)
+            self._path_map: tuple[int, LocalMap] | None = None
+            self._path_placement: np.ndarray | None = None
             if self._vo is not None:
                 self._vo.reset()
 
@@ -974,6 +1012,40 @@ class OdometryEstimator:
             how.append(source)
         return np.asarray(stamps, dtype=np.int64), np.asarray(poses).reshape(-1, 4, 4), how
 
+    def map_snapshot(self) -> MapSnapshot:
+        """The keyframes and landmarks as they stand, in ``odom`` and metres (see :class:`MapSnapshot`;
+        empty before the first map and for ``method="pose_head"``). Live, between frames: after
+        :meth:`final_trajectory` a map may stand in the arm's frame and units instead of the live scale's."""
+        with self._lock:
+            rows = list(self._earlier_path)
+            points, point_ids = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+            if self._path_map is not None:
+                current, points, point_ids = self._placed_map(*self._path_map)
+                rows += current
+            poses = np.array([T @ self._T_cam_base for _, _, T in rows]).reshape(-1, 4, 4)
+            return MapSnapshot(np.array([stamp for stamp, _, _ in rows], dtype=np.int64), poses,
+                               np.array([map_id for _, map_id, _ in rows], dtype=np.int64), points, point_ids,
+                               self._path_map[0] if self._path_map is not None else 0, self._scale.source)
+
+    def _placed_map(self, map_id: int, local_map: "LocalMap") -> tuple[list[tuple[int, int, np.ndarray]], np.ndarray, np.ndarray]:
+        """One map's keyframes ``[(stamp, map id, T_odom_cam)]``, landmarks ``(M, 3)`` and their ids, in odom at
+        the current scale, placed by its newest keyframe whose published pose is kept (else as last placed)."""
+        scale = self._scale.scale
+        with local_map.lock:
+            keyframes = [(keyframe.frame, keyframe.stamp_ns, _scaled(keyframe.T_w_c, scale)) for keyframe in local_map.keyframes]
+            point_ids = np.fromiter(local_map.landmarks, dtype=np.int64, count=len(local_map.landmarks))
+            points = np.array(list(local_map.landmarks.values()), dtype=np.float64).reshape(-1, 3) * scale
+        for frame, _, T_map_cam in reversed(keyframes):
+            published = self._published.get(frame)
+            if published is not None:
+                self._path_placement = published @ invert_transform(T_map_cam)
+                break
+        T_odom_map = self._path_placement
+        if T_odom_map is None:
+            return [], np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return ([(stamp, map_id, T_odom_map @ T_map_cam) for _, stamp, T_map_cam in keyframes],
+                points @ T_odom_map[:3, :3].T + T_odom_map[:3, 3], point_ids)
+
     def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
         self._published[frame] = T_odom_cam
         _trim(self._published)
@@ -984,6 +1056,9 @@ class OdometryEstimator:
     def _start_map(self, vo_frame: VOFrame, frame: int, key: int) -> None:
         """Anchor a new map in odom at the pose published for its first keyframe, turned about the frame it
         starts at to that frame's chained rotation; its first scale guess."""
+        if self._path_map is not None and self._path_map[1] is not self._vo.map:
+            self._earlier_path.extend(self._placed_map(*self._path_map)[0])  # at the old map's last scale
+        self._path_map, self._path_placement = (vo_frame.map_id, self._vo.map), None
         reference = vo_frame.reference_frame
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id

@@ -6,14 +6,16 @@ Image decoding is not here: :func:`nocal_ros.data.bags.decode_image` reads any o
 
 from __future__ import annotations
 
+import array
+import sys
 from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose, Quaternion, Transform, TransformStamped, Vector3
-from nav_msgs.msg import Odometry
-from sensor_msgs.msg import CameraInfo, RegionOfInterest
+from geometry_msgs.msg import Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
+from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import CameraInfo, PointCloud2, PointField, RegionOfInterest
 from std_msgs.msg import Header
 
 from nocal_ros.data.bags import decode_compressed_image, decode_image, stamp_to_ns, transform_msg_to_matrix
@@ -28,6 +30,8 @@ __all__ = [
     "matrix_to_transform",
     "ns_to_stamp",
     "odometry_message",
+    "path_message",
+    "point_cloud_message",
     "stamp_to_ns",
     "transform_msg_to_matrix",
     "transform_stamped",
@@ -73,6 +77,23 @@ def odometry_message(result: Any, stamp: Time, odom_frame: str, base_frame: str)
     msg.twist.twist.angular = Vector3(x=float(twist[3]), y=float(twist[4]), z=float(twist[5]))
     msg.twist.covariance = [float(v) for v in np.asarray(result.twist_covariance).reshape(36)]
     return msg
+
+
+def path_message(stamps_ns: np.ndarray, poses: np.ndarray, header: Header) -> Path:
+    """``nav_msgs/Path`` of poses ``(N, 4, 4)`` in ``header.frame_id``, each stamped with its own stamp."""
+    return Path(header=header, poses=[
+        PoseStamped(header=Header(stamp=ns_to_stamp(stamp), frame_id=header.frame_id), pose=matrix_to_pose(T))
+        for stamp, T in zip(np.asarray(stamps_ns).tolist(), np.asarray(poses).reshape(-1, 4, 4))
+    ])
+
+
+def point_cloud_message(points: np.ndarray, header: Header) -> PointCloud2:
+    """``sensor_msgs/PointCloud2`` of points ``(N, 3)`` in ``header.frame_id``: one row of x, y, z float32."""
+    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+    fields = [PointField(name=name, offset=4 * k, datatype=PointField.FLOAT32, count=1) for k, name in enumerate("xyz")]
+    return PointCloud2(header=header, height=1, width=len(xyz), fields=fields, is_bigendian=sys.byteorder == "big",
+                       point_step=12, row_step=12 * len(xyz), data=array.array("B", xyz.tobytes()),
+                       is_dense=bool(np.isfinite(xyz).all()))
 
 
 def camera_info_message(calibration: Any, header: Header) -> CameraInfo:

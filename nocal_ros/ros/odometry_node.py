@@ -1,4 +1,6 @@
-"""rclpy odometry node: images in, ``nav_msgs/Odometry``, ``CameraInfo`` and ``odom -> base`` TF out.
+"""rclpy odometry node: images in, ``nav_msgs/Odometry``, ``CameraInfo`` and ``odom -> base`` TF out, and
+the VO's keyframes (``keyframe_path``, ``nav_msgs/Path``) and landmarks (``map_points``,
+``sensor_msgs/PointCloud2``) in ``odom`` as bundle adjustment refines them.
 
 A thin adapter: every decision about poses, gaps and resets is :class:`nocal_ros.odometry.OdometryEstimator`'s;
 calibration files follow camera_info_manager (:mod:`nocal_ros.live.calibration_url`), and the
@@ -35,6 +37,8 @@ Parameters (see config/odometry.yaml):
     frame_period: camera frame period in s (0 = from the stamps);  distortion_model: the online camera's
         lens, auto (plumb_bob; equidistant for a learnt fisheye) | plumb_bob | equidistant;  tf_timeout: seconds to wait for base -> camera at a frame;
         diagnostics_period: seconds;  max_delay, max_age: seconds before /diagnostics warns;
+        map_period: seconds between ``keyframe_path`` and ``map_points`` messages (0 = none; sent only while
+            something subscribes; :meth:`~nocal_ros.odometry.OdometryEstimator.map_snapshot`);
         threads: torch CPU threads (0 = torch's default; 1 is fastest for one pair at a time on small
         loaded machines, see BENCHMARKS.md).
 """
@@ -52,7 +56,7 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import Odometry, Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import JumpThreshold, TimeJump
 from rclpy.duration import Duration
@@ -60,7 +64,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.time import Time
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from sensor_msgs.srv import SetCameraInfo
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -78,7 +82,10 @@ from nocal_ros.ros.conversions import (
     decode_compressed_image,
     decode_image,
     diagnostic_status,
+    ns_to_stamp,
     odometry_message,
+    path_message,
+    point_cloud_message,
     stamp_to_ns,
     transform_msg_to_matrix,
     transform_stamped,
@@ -102,6 +109,7 @@ PARAMETERS: dict[str, Any] = {
     "distortion_model": "auto",
     "tf_timeout": 0.0,
     "diagnostics_period": 1.0,
+    "map_period": 1.0,
     "compressed": False,
     "threads": 0,
     "camera_name": "camera",
@@ -175,6 +183,8 @@ class OdometryNode(Node):
         self.odom_publisher = self.create_publisher(Odometry, "odom", 10)
         self.camera_info_publisher = self.create_publisher(CameraInfo, "camera_info", 10)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.path_publisher = self.create_publisher(Path, "keyframe_path", 1)
+        self.map_points_publisher = self.create_publisher(PointCloud2, "map_points", 1)
 
         self.mailbox = FrameMailbox(bool(p["latest_only"]), int(p["queue_size"]))
         qos = QoSProfile(
@@ -199,6 +209,11 @@ class OdometryNode(Node):
         self.create_service(Trigger, "~/save_calibration", self._on_save_calibration, callback_group=services)
         self.create_timer(float(p["diagnostics_period"]), self._publish_diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
+        map_period = float(p["map_period"])
+        if not map_period >= 0:
+            raise ConfigError(f"map_period must be 0 (off) or a positive number of seconds, not {map_period!r}")
+        if map_period > 0:
+            self.create_timer(map_period, self._publish_map, callback_group=MutuallyExclusiveCallbackGroup())
         # A jump back of the clock (sim time: a bag loop) makes every stamp held so far meaningless.
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=True),
@@ -416,6 +431,17 @@ class OdometryNode(Node):
             self.get_logger().warning(f"no CameraInfo: {error}", throttle_duration_sec=10.0)
             return
         self.camera_info_publisher.publish(camera_info_message(calibration, header))
+
+    def _publish_map(self) -> None:
+        """The keyframes and landmarks as they stand, stamped with the newest keyframe's stamp (the image
+        time of the rest of the node's output), or now when there is no keyframe (after a reset)."""
+        if self.path_publisher.get_subscription_count() == 0 and self.map_points_publisher.get_subscription_count() == 0:
+            return
+        snapshot = self.estimator.map_snapshot()
+        stamp = ns_to_stamp(int(snapshot.stamps_ns[-1])) if len(snapshot.stamps_ns) else self.get_clock().now().to_msg()
+        header = Header(stamp=stamp, frame_id=self.odom_frame)
+        self.path_publisher.publish(path_message(snapshot.stamps_ns, snapshot.T_odom_base, header))
+        self.map_points_publisher.publish(point_cloud_message(snapshot.points, header))
 
     # -- diagnostics -----------------------------------------------------------------------------
 
