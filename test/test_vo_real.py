@@ -7,6 +7,8 @@ runs it. Skipped where the recordings are not present.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from real_recordings import REAL, needs_real
 
@@ -78,25 +80,41 @@ def test_a_drive_turning_from_its_first_frame_finds_its_focal_length_from_a_gues
 
 @needs_real("kitti_clip")
 def test_a_drive_with_a_known_camera_height_is_metric_from_the_roads_homography_before_any_plane_fit():
-    """KITTI's clip, frames 0-21, from f = width with the camera's height (1.65 m). The road is tracked for
-    about one frame, so no window shows the 30 landmarks a plane fit needs until frame 22, and the pose
-    head's scale (x0.06-0.09 of each step here) was published until then. The ground's homography between
-    consecutive frames needs only tracks that last a frame: once the camera is solved (frame 10), the
-    median of two frame pairs or more makes the steps metric (docs/RESULTS.md, "Metric scale from the
-    road's homography"). The steps published through it are within 20 % of their true length (measured:
-    x0.83-0.89 on two pairs, frames 11-14, x0.92-1.07 from the third), and no plane was fitted by then."""
+    """KITTI's clip, frames 0-26, from f = width with the camera's height (1.65 m). The road is tracked for
+    about one frame, so windows seldom show the landmarks a plane fit needs (the first came at frame 22 on
+    an Intel Xeon, at 18 on an AMD EPYC), and the pose head's scale (x0.06-0.09 of each step here) was
+    published until then. The ground's homography between consecutive frames needs only tracks that last a
+    frame: once the camera is solved (frame 10), the median of two frame pairs or more makes the steps
+    metric (docs/RESULTS.md, "Metric scale from the road's homography"). Until three window planes can
+    outvote one that is not the road, the homography's samples vote with them: the AMD machine's first
+    plane was x3.9 of the truth, and alone it made steps 18-25 x2.3-4.2 long. Here the first live plane is
+    made 4x too long on every machine. The steps published on the ground's scale stay within 20 % of their
+    true length (measured: x0.85-1.07 on the AMD EPYC)."""
     from nocal_ros.geometry import invert_transform
 
     recording = open_recording("kitti", REAL / "kitti_clip")
     truth = recording.ground_truth
     estimator = OdometryEstimator(synchronous_mapping=True, camera_height=1.65)
-    results = [estimator.process(int(stamp), image) for stamp, image in list(recording.frames())[:22]]
-    assert not estimator._ground_fits  # no window's plane yet
+    fit_ground = estimator._ground_scale
+    live_fits = []
+
+    def first_plane_wrong(local_map, newest=None, *args):
+        estimate = fit_ground(local_map, newest, *args)
+        if estimate is not None and newest is not None:
+            live_fits.append(estimate.scale)
+            if len(live_fits) == 1:
+                estimate = dataclasses.replace(estimate, scale=4.0 * estimate.scale)
+        return estimate
+
+    estimator._ground_scale = first_plane_wrong
+    frames = 27
+    results = [estimator.process(int(stamp), image) for stamp, image in list(recording.frames())[:frames]]
     estimator.close()
+    assert live_fits, "no window's plane by frame 26"
     ground = [k for k, result in enumerate(results) if result.scale_source == "ground"]
     ratios = [float(np.linalg.norm(results[k].T_prev_curr[:3, 3])
                     / np.linalg.norm((invert_transform(truth[k - 1]) @ truth[k])[:3, 3])) for k in ground]
-    print("ground from frame", ground[:1], "length over the truth", np.round(ratios, 2))
-    assert len(ground) >= 10 and ground == list(range(ground[0], 22))
+    print("ground from frame", ground[:1], "length over the truth", np.round(ratios, 2), "planes", len(live_fits))
+    assert len(ground) >= 15 and ground == list(range(ground[0], frames))
     assert all(0.8 < ratio < 1.2 for ratio in ratios)
     assert all(results[k].twist_covariance.trace() > 0 for k in ground)

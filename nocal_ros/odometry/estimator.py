@@ -1131,7 +1131,13 @@ class OdometryEstimator:
                     floor = GUESS_GROUND_SCALE_STD
                 else:
                     floor = GROUND_SCALE_STD if measured else FEW_GROUND_FITS_SCALE_STD
-                estimate = ScaleEstimate(float(np.median(values)) / unit, "ground", fit.samples, max(floor, spread))
+                voters = values
+                if not measured:
+                    # Until three fits can outvote a plane that is not the ground, the map's homography samples
+                    # vote with them: KITTI's first window plane was x3.9 of the truth on one machine, and alone
+                    # it made the steps 4x too long where nine samples had held them at x0.86-0.96 (measured).
+                    voters = values + [value for value, _ in self._ground_motions]
+                estimate = ScaleEstimate(float(np.median(voters)) / unit, "ground", fit.samples, max(floor, spread))
         if estimate is not None:
             self._scale = estimate
 
