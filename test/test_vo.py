@@ -8,6 +8,7 @@ from what these very sequences measure, with margin (said at each).
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import cv2
 import numpy as np
@@ -281,6 +282,9 @@ def test_the_keyframe_path_and_map_points_are_the_refined_map_placed_where_odome
     rows = np.loadtxt(out / "keyframes.tum")
     np.testing.assert_allclose(rows[:, 0], snapshot.stamps_ns * 1e-9, rtol=0, atol=1e-6)
     np.testing.assert_allclose(rows[:, 1:4], snapshot.T_odom_base[:, :3, 3], atol=1e-6)
+    report = json.loads((out / "report.json").read_text())["keyframes"]  # the same keyframes against the truth
+    assert report["poses"] == len(snapshot.stamps_ns)
+    assert report["ape_sim3"]["rmse"] == pytest.approx(refined, rel=1e-4)
     lines = (out / "map_points.ply").read_text().splitlines()
     assert lines[:3] == ["ply", "format ascii 1.0", f"element vertex {len(snapshot.points)}"]
     np.testing.assert_allclose(np.loadtxt(lines[lines.index("end_header") + 1:]), snapshot.points, atol=1e-5)

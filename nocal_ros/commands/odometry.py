@@ -230,6 +230,14 @@ class ReplayResult:
                 if final.get("calibration"):
                     line += f", focal error {final['calibration']['focal_error_percent']:.2f} %"
                 lines.append(line)
+            keyframes = self.report.get("keyframes")
+            if keyframes and "rpe" in keyframes:
+                line = (f"the {keyframes['poses']} keyframes as the map held them at the end (keyframes.tum): RPE "
+                        f"{keyframes['rpe']['translation_m']['rmse'] * 100:.2f} cm, "
+                        f"{keyframes['rpe']['rotation_deg']['rmse']:.3f} deg RMSE per keyframe pair")
+                if "ape_sim3" in keyframes and "rmse" in keyframes["ape_sim3"]:
+                    line += f", APE Sim(3) {keyframes['ape_sim3']['rmse']:.4f} m (scale {keyframes['ape_sim3']['scale']:.3f})"
+                lines.append(line)
         lines += [f"  {name:<17} {path}" for name, path in self.outputs.items()]
         return "\n".join(lines)
 
@@ -488,9 +496,11 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     stamps_ns = all_stamps[first:last]
     write_tum(stage["trajectory.tum"], stamps_ns, np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
     snapshot = estimator.map_snapshot()  # before the final solve moves the map
+    keyframes = None
     if len(snapshot.stamps_ns):
         write_tum(stage["keyframes.tum"], snapshot.stamps_ns, snapshot.T_odom_base)
         write_ply(stage["map_points.ply"], snapshot.points)
+        keyframes = (snapshot.stamps_ns, snapshot.T_odom_base @ estimator.T_base_cam)
     calibration = residual = None
     if frames_in:
         calibration, residual = estimator.camera_info()  # the online camera at the end of the bag
@@ -511,7 +521,8 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                 "scale_source": scale_sources[first:last], "arm_poses": int(next_arm),
                 "step_covariances": step_covariances[first:last],
                 "camera_history": camera_history,
-                "calibration_status": estimator.calibration_status(), "final_trajectory": final},
+                "calibration_status": estimator.calibration_status(), "final_trajectory": final,
+                "keyframes": keyframes},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
@@ -622,6 +633,13 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
             report["final_trajectory"]["scale_source"] = {source: sources.count(source) for source in sorted(set(sources))}
         if truth.calibration is not None:
             report["final_trajectory"]["calibration"] = evaluation.calibration_errors(final[2], truth.calibration)
+    keyframes = replay.extras.get("keyframes")
+    if keyframes is not None:
+        # The keyframes as the live map held them at the end (keyframes.tum; RPE per keyframe pair).
+        keyframe_stamps, keyframe_estimate, keyframe_truth = _matched(keyframes[0], keyframes[1], truth)
+        if len(keyframe_stamps) >= 2:
+            report["keyframes"] = evaluation.summary(
+                evaluation.trajectory_errors(keyframe_stamps, keyframe_estimate, keyframe_truth))
     covariances = replay.extras.get("step_covariances")
     if covariances is not None and len(covariances) == len(replay.stamps_ns) and len(stamps) >= 2:
         report["rotation_consistency"] = _step_consistency(replay, stamps, estimate, T_gt, covariances, "rotation")
