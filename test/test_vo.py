@@ -13,6 +13,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from ground_faults import wrong_live_plane
 
 from nocal_ros.data.synthetic import render_sequence
 from nocal_ros.errors import NocalError
@@ -474,18 +475,7 @@ def test_a_known_camera_height_makes_the_scale_metric_through_the_ground_plane(s
         OdometryEstimator(camera_height=-1.0)
     height = float(sequence.ground_truth[:, 2, 3].mean())  # the floor is the world's z = 0
     estimator = OdometryEstimator(synchronous_mapping=True, record_trajectory=True, camera_height=height)
-    live_fits = []
-    fit_ground = estimator._ground_scale
-
-    def with_one_wrong_plane(local_map, newest=None, *args):
-        estimate = fit_ground(local_map, newest, *args)
-        if estimate is not None and newest is not None:
-            live_fits.append(estimate.scale)
-            if len(live_fits) == 6:
-                estimate = dataclasses.replace(estimate, scale=3.5 * estimate.scale)
-        return estimate
-
-    estimator._ground_scale = with_one_wrong_plane
+    live_fits = wrong_live_plane(estimator, 6, 3.5)
     results = run(estimator, sequence.images, sequence.stamps_ns)
     assert len(live_fits) > 10
     assert results[-1].scale_source == "ground"

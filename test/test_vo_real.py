@@ -7,9 +7,8 @@ runs it. Skipped where the recordings are not present.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
+from ground_faults import wrong_live_plane
 from real_recordings import REAL, needs_real
 
 from nocal_ros import evaluation
@@ -95,18 +94,7 @@ def test_a_drive_with_a_known_camera_height_is_metric_from_the_roads_homography_
     recording = open_recording("kitti", REAL / "kitti_clip")
     truth = recording.ground_truth
     estimator = OdometryEstimator(synchronous_mapping=True, camera_height=1.65)
-    fit_ground = estimator._ground_scale
-    live_fits = []
-
-    def first_plane_wrong(local_map, newest=None, *args):
-        estimate = fit_ground(local_map, newest, *args)
-        if estimate is not None and newest is not None:
-            live_fits.append(estimate.scale)
-            if len(live_fits) == 1:
-                estimate = dataclasses.replace(estimate, scale=4.0 * estimate.scale)
-        return estimate
-
-    estimator._ground_scale = first_plane_wrong
+    live_fits = wrong_live_plane(estimator, 1, 4.0)
     frames = 27
     results = [estimator.process(int(stamp), image) for stamp, image in list(recording.frames())[:frames]]
     estimator.close()

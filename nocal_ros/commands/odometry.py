@@ -222,24 +222,24 @@ class ReplayResult:
             lines.append(format_report(self.report))
             final = self.report.get("final_trajectory")
             if final and "rpe" in final:
-                line = (f"through the final map and camera (trajectory_final.tum): RPE "
-                        f"{final['rpe']['translation_m']['rmse'] * 100:.2f} cm, {final['rpe']['rotation_deg']['rmse']:.3f} deg "
-                        f"RMSE per pair")
-                if "ape_sim3" in final and "rmse" in final["ape_sim3"]:
-                    line += f", APE Sim(3) {final['ape_sim3']['rmse']:.4f} m"
-                if final.get("calibration"):
-                    line += f", focal error {final['calibration']['focal_error_percent']:.2f} %"
-                lines.append(line)
+                lines.append(_errors_line("through the final map and camera (trajectory_final.tum)", final, "pair"))
             keyframes = self.report.get("keyframes")
             if keyframes and "rpe" in keyframes:
-                line = (f"the {keyframes['poses']} keyframes as the map held them at the end (keyframes.tum): RPE "
-                        f"{keyframes['rpe']['translation_m']['rmse'] * 100:.2f} cm, "
-                        f"{keyframes['rpe']['rotation_deg']['rmse']:.3f} deg RMSE per keyframe pair")
-                if "ape_sim3" in keyframes and "rmse" in keyframes["ape_sim3"]:
-                    line += f", APE Sim(3) {keyframes['ape_sim3']['rmse']:.4f} m (scale {keyframes['ape_sim3']['scale']:.3f})"
-                lines.append(line)
+                lines.append(_errors_line(f"the {keyframes['poses']} keyframes as the map held them at the end "
+                                          "(keyframes.tum)", keyframes, "keyframe pair"))
         lines += [f"  {name:<17} {path}" for name, path in self.outputs.items()]
         return "\n".join(lines)
+
+
+def _errors_line(what: str, errors: dict[str, Any], pair: str) -> str:
+    """One line of a trajectory's errors: RPE per ``pair``, APE Sim(3) and its scale, the focal error where known."""
+    line = (f"{what}: RPE {errors['rpe']['translation_m']['rmse'] * 100:.2f} cm, "
+            f"{errors['rpe']['rotation_deg']['rmse']:.3f} deg RMSE per {pair}")
+    if "rmse" in errors.get("ape_sim3", {}):
+        line += f", APE Sim(3) {errors['ape_sim3']['rmse']:.4f} m (scale {errors['ape_sim3']['scale']:.3f})"
+    if errors.get("calibration"):
+        line += f", focal error {errors['calibration']['focal_error_percent']:.2f} %"
+    return line
 
 
 def _image_count(bag: Path, topic: str) -> int | None:
