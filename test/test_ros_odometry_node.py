@@ -237,8 +237,8 @@ def test_the_vo_publishes_its_keyframe_path_and_map_points_in_odom(ros):
     stamps = publish_sequence(harness, sequence.images)
     assert wait_for(lambda: node.estimator.wait_for_mapping(0.1) and node.estimator.map_snapshot().map_id > 0, timeout=30.0)
     snapshot = node.estimator.map_snapshot()
-    count = len(harness.paths)
-    assert wait_for(lambda: len(harness.paths) > count + 1 and len(harness.clouds) > count + 1, timeout=10.0)
+    paths, clouds = len(harness.paths), len(harness.clouds)  # the next messages are made after the snapshot
+    assert wait_for(lambda: len(harness.paths) > paths + 1 and len(harness.clouds) > clouds + 1, timeout=10.0)
     path, cloud = harness.paths[-1], harness.clouds[-1]
     assert path.header.frame_id == "odom" and cloud.header.frame_id == "odom"
     path_stamps = [stamp_to_ns(pose.header.stamp) for pose in path.poses]

@@ -140,7 +140,6 @@ from nocal_ros.odometry.tracking import TrackingSettings, VisualOdometry, VOFram
 
 if TYPE_CHECKING:
     from nocal_ros.lens import CameraCalibration
-    from nocal_ros.odometry.map import LocalMap
     from nocal_ros.odometry.frontend import TrackedFrame
     from nocal_ros.odometry.map import LocalMap
 
