@@ -36,7 +36,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from nocal_ros.camera import PAPER_EQUIVALENT_INTRINSICS_LR, STAGES, CameraModel
+from nocal_ros.camera import PAPER_EQUIVALENT_INTRINSICS_LR, CameraModel
 from nocal_ros.errors import ConfigError, NocalError
 from nocal_ros.epipolar import ArmCorrespondences, arm_correspondences, epipolar_loss
 from nocal_ros.losses import PAPER_WEIGHTS, TERM_NAMES, LossTerms, nocal_loss

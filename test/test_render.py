@@ -7,7 +7,7 @@ import pytest
 from nocal_ros.data.render import Renderer
 from nocal_ros.data.scenes import Rectangle, Scene, random_room
 from nocal_ros.data.synthetic import covers_image, random_calibration, render_sequence
-from nocal_ros.data.textures import NATURAL_SOURCES, PROCEDURAL_FAMILIES, texture_bank
+from nocal_ros.data.textures import NATURAL_SOURCES, texture_bank
 from nocal_ros.data.trajectory import random_trajectory
 from nocal_ros.geometry import invert_transform, make_transform, so3_exp
 from nocal_ros.lens import CameraCalibration

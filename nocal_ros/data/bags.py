@@ -954,7 +954,7 @@ def read_sequence(
     invalid_poses = 0
     with _open_bag(path) as reader:
         topics = reader.topics
-        image_connections = _image_connections(reader, path, image_topic)
+        _image_connections(reader, path, image_topic)  # a missing or wrong image topic: one clear error first
         if pose_source == "pose" and pose_topic not in topics:
             raise BagError(f"{path}: no arm pose topic {pose_topic!r}; topics in the bag: {_topic_list(reader)}")
         use_pose_topic = pose_source in ("pose", "auto") and pose_topic in topics
