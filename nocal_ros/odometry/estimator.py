@@ -187,7 +187,7 @@ ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
 METHODS = ("vo", "pose_head")
 #: Keyframes of the maps before the current one kept for :meth:`OdometryEstimator.map_snapshot`'s path (the
-#: newest; about 10 minutes of keyframes at 15 a second).
+#: newest): 0.19-0.43 of the frames were keyframes on the dev replays, so 13-29 minutes at 30 Hz.
 PATH_HISTORY = 10_000
 
 
@@ -488,9 +488,9 @@ class OdometryEstimator:
             self._map_scale_sources: dict[int, str] = {}  # map id -> where that scale came from
             self._previous_focal_std = 0.0  # the online camera's relative focal std when the last frame was published
             # map_snapshot's path: the maps left behind, (stamp, map id, T_odom_cam) per keyframe, and the current
-            # map (id, map) with its last placement in odom (T_odom_map, metres)
+            # map (the anchored one, _anchor_map_id) with its last placement in odom (T_odom_map, metres)
             self._earlier_path: deque[tuple[int, int, np.ndarray]] = deque(maxlen=PATH_HISTORY)
-            self._path_map: tuple[int, LocalMap] | None = None
+            self._path_map: LocalMap | None = None
             self._path_placement: np.ndarray | None = None
             if self._vo is not None:
                 self._vo.reset()
@@ -1019,12 +1019,12 @@ class OdometryEstimator:
             rows = list(self._earlier_path)
             points, point_ids = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
             if self._path_map is not None:
-                current, points, point_ids = self._placed_map(*self._path_map)
+                current, points, point_ids = self._placed_map(self._anchor_map_id, self._path_map)
                 rows += current
             poses = np.array([T @ self._T_cam_base for _, _, T in rows]).reshape(-1, 4, 4)
             return MapSnapshot(np.array([stamp for stamp, _, _ in rows], dtype=np.int64), poses,
                                np.array([map_id for _, map_id, _ in rows], dtype=np.int64), points, point_ids,
-                               self._path_map[0] if self._path_map is not None else 0, self._scale.source)
+                               self._anchor_map_id if self._path_map is not None else 0, self._scale.source)
 
     def _placed_map(self, map_id: int, local_map: "LocalMap") -> tuple[list[tuple[int, int, np.ndarray]], np.ndarray, np.ndarray]:
         """One map's keyframes ``[(stamp, map id, T_odom_cam)]``, landmarks ``(M, 3)`` and their ids, in odom at
@@ -1055,9 +1055,9 @@ class OdometryEstimator:
     def _start_map(self, vo_frame: VOFrame, frame: int, key: int) -> None:
         """Anchor a new map in odom at the pose published for its first keyframe, turned about the frame it
         starts at to that frame's chained rotation; its first scale guess."""
-        if self._path_map is not None and self._path_map[1] is not self._vo.map:
-            self._earlier_path.extend(self._placed_map(*self._path_map)[0])  # at the old map's last scale
-        self._path_map, self._path_placement = (vo_frame.map_id, self._vo.map), None
+        if self._path_map is not None and self._path_map is not self._vo.map:  # at the old map's id and last scale
+            self._earlier_path.extend(self._placed_map(self._anchor_map_id, self._path_map)[0])
+        self._path_map, self._path_placement = self._vo.map, None
         reference = vo_frame.reference_frame
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id
