@@ -187,7 +187,7 @@ ARM_POSE_HISTORY = 10000
 ARM_TOLERANCE_NS = 20_000_000
 METHODS = ("vo", "pose_head")
 #: Keyframes of the maps before the current one kept for :meth:`OdometryEstimator.map_snapshot`'s path (the
-#: newest): 0.19-0.43 of the frames were keyframes on the dev replays, so 13-29 minutes at 30 Hz.
+#: newest): 0.19-0.43 of the frames were keyframes on the dev replays, so 13-30 minutes at 30 Hz.
 PATH_HISTORY = 10_000
 
 
