@@ -307,8 +307,12 @@ def _step_consistency(estimate: np.ndarray, truth: np.ndarray, covariances: np.n
             "within_99": float(np.mean(values < CHI2_3DOF_99))}
 
 
-def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: bool = False) -> dict[str, Any]:
+def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: bool = False,
+                        align: bool = True) -> dict[str, Any]:
     """APE after Umeyama alignment of the estimate to the truth (``correct_scale``: similarity, else SE(3)).
+
+    ``align=False``: the poses as they are, already in one frame (odometry and truth both starting at the
+    first pose): the error a consumer of the poses meets, with no fit to the truth.
 
     The alignment is undefined when the positions do not span a plane (a still camera, a straight line):
     Umeyama's cross-covariance then has rank below 2. The result says so, ``{"correct_scale",
@@ -325,16 +329,15 @@ def absolute_pose_error(estimate: np.ndarray, truth: np.ndarray, correct_scale: 
         raise ValueError(f"alignment needs at least 3 poses, got {len(truth)}")
     reference = trajectory.PosePath3D(poses_se3=list(truth))
     estimated = trajectory.PosePath3D(poses_se3=list(estimate))
-    try:
-        rotation, translation, scale = estimated.align(reference, correct_scale=correct_scale)
-    except GeometryException as error:
-        return {"correct_scale": bool(correct_scale),
-                "undefined": f"alignment undefined: {error} (the positions do not span a plane: still or straight-line motion)"}
-    result: dict[str, Any] = {
-        "correct_scale": bool(correct_scale),
-        "scale": float(scale),
-        "alignment": [[float(x) for x in row] for row in np.vstack((np.column_stack((rotation, translation)), [0, 0, 0, 1]))],
-    }
+    result: dict[str, Any] = {"correct_scale": bool(correct_scale) and align, "aligned": bool(align)}
+    if align:
+        try:
+            rotation, translation, scale = estimated.align(reference, correct_scale=correct_scale)
+        except GeometryException as error:
+            return {"correct_scale": bool(correct_scale), "aligned": True,
+                    "undefined": f"alignment undefined: {error} (the positions do not span a plane: still or straight-line motion)"}
+        result["scale"] = float(scale)
+        result["alignment"] = [[float(x) for x in row] for row in np.vstack((np.column_stack((rotation, translation)), [0, 0, 0, 1]))]
     for key, relation in (("translation_m", metrics.PoseRelation.translation_part), ("rotation_deg", metrics.PoseRelation.rotation_angle_deg)):
         metric = metrics.APE(relation)
         metric.process_data((reference, estimated))
@@ -399,7 +402,8 @@ def format_report(report: dict[str, Any]) -> str:
         picks = sorted({round(i) for i in np.linspace(0, len(history) - 1, min(len(history), 6))})
         lines.append("  focal error over the replay: " + ", ".join(
             f"frame {history[i]['frame']} {history[i]['focal_error_percent']:.2f} %" for i in picks))
-    rows = [(key, label) for key, label in (("rpe", "RPE"), ("ape_se3", "APE SE(3)"), ("ape_sim3", "APE Sim(3)")) if report.get(key)]
+    rows = [(key, label) for key, label in (("rpe", "RPE"), ("ape_se3", "APE SE(3)"), ("ape_sim3", "APE Sim(3)"),
+                                            ("ape_unaligned", "APE unaligned")) if report.get(key)]
     if rows:
         lines.append("odometry                        mean        std       rmse        max    count")
         for key, label in rows:

@@ -163,6 +163,13 @@ def test_absolute_pose_error_matches_an_independent_umeyama():
     exact[:, :3, 3] *= 0.7
     assert ev.absolute_pose_error(exact, truth, correct_scale=True)["translation_m"]["max"] < 1e-9
     assert ev.absolute_pose_error(exact, truth, correct_scale=False)["translation_m"]["max"] > 0.01
+    # Unaligned: the poses as they are, each one's distance to its true position (and rotation angle).
+    unaligned = ev.absolute_pose_error(moved, truth, align=False)
+    np.testing.assert_allclose(unaligned["translation_m_per_pose"], np.linalg.norm(moved[:, :3, 3] - truth[:, :3, 3], axis=1),
+                               atol=1e-9)
+    angles = [np.degrees(np.linalg.norm(g.so3_log(a[:3, :3].T @ b[:3, :3]))) for a, b in zip(truth, moved)]
+    np.testing.assert_allclose(unaligned["rotation_deg_per_pose"], angles, atol=1e-6)
+    assert unaligned["aligned"] is False and "scale" not in unaligned
 
 
 def test_report_is_json_table_and_plot(tmp_path):

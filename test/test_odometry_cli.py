@@ -92,6 +92,10 @@ def test_replay_writes_every_output_readable_by_rosbags(tmp_path, learnt_camera)
     assert {m.header.frame_id for m in odom} == {"odom"} and {m.child_frame_id for m in odom} == {"camera_optical"}
     assert {m.header.frame_id for m in infos} == {"camera_optical"}
     assert {(t.transforms[0].header.frame_id, t.transforms[0].child_frame_id) for t in tfs} == {("odom", "camera_optical")}
+    # map -> odom beside it, at the same stamp: the identity for the pose head alone (no map to correct odom by)
+    assert {(t.transforms[1].header.frame_id, t.transforms[1].child_frame_id) for t in tfs} == {("map", "odom")}
+    assert all(stamp_ns(t.transforms[1].header) == stamp_ns(t.transforms[0].header) for t in tfs)
+    assert all(t.transforms[1].transform.rotation.w == 1.0 and t.transforms[1].transform.translation.x == 0.0 for t in tfs)
 
     # Poses: the true trajectory from the first frame, through the dropped frame (gap of 2).
     kept = [k for k in range(12) if k != 5]

@@ -188,7 +188,7 @@ def test_overwrite_with_a_bag_without_ground_truth_removes_the_old_report(moving
     assert (out / "report.json").is_file() and (out / "trajectory.png").is_file()
     assert odometry(no_truth, out, "--overwrite") == 0
     assert sorted(p.name for p in out.iterdir()) == ["calibration.yaml", "calibration_final.yaml", "odometry", "trajectory.tum",
-                                                     "trajectory_final.tum"]
+                                                     "trajectory_final.tum", "trajectory_map.tum"]
 
 
 # ---- header stamps that jump back ---------------------------------------------------------------------

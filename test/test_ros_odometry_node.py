@@ -202,6 +202,11 @@ def test_node_publishes_odometry_camera_info_and_tf_with_the_image_stamps(ros, f
     edges = [t for t in harness.tf if t.child_frame_id == "base_link"]
     assert {t.header.frame_id for t in edges} == {"odom"}
     assert [stamp_to_ns(t.header.stamp) for t in edges] == stamps
+    # map -> odom in the same messages, at the same stamps: the identity for the pose head alone (no map)
+    corrections = [t for t in harness.tf if t.child_frame_id == "odom"]
+    assert {t.header.frame_id for t in corrections} == {"map"} and [stamp_to_ns(t.header.stamp) for t in corrections] == stamps
+    assert all(t.transform.rotation.w == 1.0 and t.transform.translation.x == t.transform.translation.z == 0.0
+               for t in corrections)
 
     # The network's camera motion on the resized frames, moved to the base frame through the static
     # TF mounting, computed here independently of the estimator.
@@ -253,6 +258,12 @@ def test_the_vo_publishes_its_keyframe_path_and_map_points_in_odom(ros):
     points = point_cloud2.read_points_numpy(cloud, field_names=("x", "y", "z"))
     assert points.shape == (len(snapshot.points), 3) and len(points) > 20
     np.testing.assert_allclose(points, snapshot.points, atol=1e-4)
+    # map -> odom at every published frame's stamp, as the estimator gave it with that frame's pose
+    corrections = {stamp_to_ns(t.header.stamp): t for t in harness.tf if t.child_frame_id == "odom"}
+    assert set(corrections) == set(published) and {t.header.frame_id for t in corrections.values()} == {"map"}
+    moved = [np.linalg.norm([t.transform.translation.x, t.transform.translation.y, t.transform.translation.z])
+             for t in corrections.values()]
+    assert np.isfinite(moved).all() and max(moved) > 0  # the map corrected odom somewhere
 
 
 def test_diagnostics_report_latency_rate_drops_model_and_calibration(ros, frames):

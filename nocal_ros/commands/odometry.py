@@ -2,9 +2,11 @@
 
 Writes into ``DIR``:
 
-* ``odometry``: a rosbag2 with ``/odom`` (nav_msgs/Odometry), ``/tf`` (``odom -> base``) and
-  ``/camera_info`` (the learnt camera; same stamp and frame id as each image);
+* ``odometry``: a rosbag2 with ``/odom`` (nav_msgs/Odometry), ``/tf`` (``map -> odom`` and ``odom -> base``,
+  as the node broadcasts them) and ``/camera_info`` (the learnt camera; same stamp and frame id as each image);
 * ``trajectory.tum``: ``stamp x y z qx qy qz qw`` of the base frame in ``odom``, as published;
+* ``trajectory_map.tum``: the same frames in ``map`` (``T_map_odom @ T_odom_base`` as of each frame: the
+  maps as bundle adjustment had refined them then; see :mod:`nocal_ros.odometry.estimator`);
 * ``trajectory_final.tum``: the same frames posed again through the final map and camera at the end of
   the replay (:mod:`nocal_ros.odometry.trajectory`; the VO only, when the estimator records them);
 * ``keyframes.tum``: the VO's keyframes as its map held them at the end of the stream (the node's
@@ -55,7 +57,7 @@ from nocal_ros.geometry import (
 
 log = logging.getLogger(__name__)
 
-OUTPUT_NAMES = ("odometry", "trajectory.tum", "trajectory_final.tum", "keyframes.tum", "map_points.ply",
+OUTPUT_NAMES = ("odometry", "trajectory.tum", "trajectory_map.tum", "trajectory_final.tum", "keyframes.tum", "map_points.ply",
                 "calibration.yaml", "calibration_final.yaml", "report.json", "trajectory.png")
 
 
@@ -68,6 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt-topic", default="/ground_truth/pose", help="ground-truth camera poses, when the bag has them")
     parser.add_argument("--camera-info-topic", default="/ground_truth/camera_info", help="true calibration, when the bag has it")
     parser.add_argument("--odom-frame", default="odom")
+    parser.add_argument("--map-frame", default="map", help="parent of the map -> odom correction in /tf (\"\": none)")
     parser.add_argument("--base-frame", default="", help="child frame of /odom (default: the images' frame id)")
     parser.add_argument(
         "--base-to-camera", type=arg.finite_float, nargs=7, metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
@@ -180,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
     result = replay_bag(
         args.bag, args.out, estimator,
         image_topic=args.image_topic, gt_topic=args.gt_topic, camera_info_topic=args.camera_info_topic,
-        odom_frame=args.odom_frame, base_frame=args.base_frame or None, storage=args.storage, arm_topic=args.arm_topic or None,
+        odom_frame=args.odom_frame, map_frame=args.map_frame, base_frame=args.base_frame or None, storage=args.storage,
+        arm_topic=args.arm_topic or None,
         max_frames=args.max_frames, overwrite=args.overwrite, progress=not args.no_progress,
     )
     print(result.summary())
@@ -223,6 +227,11 @@ class ReplayResult:
             final = self.report.get("final_trajectory")
             if final and "rpe" in final:
                 lines.append(_errors_line("through the final map and camera (trajectory_final.tum)", final, "pair"))
+            map_frame = self.report.get("map_frame")
+            if map_frame and "rmse" in map_frame.get("ape_unaligned", {}):
+                line = _errors_line("in the map frame as of each frame (trajectory_map.tum)", map_frame, "pair")
+                lines.append(f"{line}, APE unaligned {map_frame['ape_unaligned']['rmse']:.4f} m "
+                             f"(odom {self.report['ape_unaligned']['rmse']:.4f} m)")
             keyframes = self.report.get("keyframes")
             if keyframes and "rpe" in keyframes:
                 lines.append(_errors_line(f"the {keyframes['poses']} keyframes as the map held them at the end "
@@ -373,6 +382,7 @@ def replay_bag(
     camera_info_topic: str | None = "/ground_truth/camera_info",
     arm_topic: str | None = "/arm/pose",
     odom_frame: str = "odom",
+    map_frame: str = "map",
     base_frame: str | None = None,
     storage: str = "mcap",
     max_frames: int | None = None,
@@ -397,7 +407,7 @@ def replay_bag(
         with StagedOutputs(out_dir) as stage:
             replay = _replay_into(stage, bag, estimator, image_topic=image_topic, gt_topic=gt_topic,
                                   camera_info_topic=camera_info_topic, arm_topic=arm_topic, odom_frame=odom_frame,
-                                  base_frame=base_frame, storage=storage, max_frames=max_frames, progress=progress,
+                                  map_frame=map_frame, base_frame=base_frame, storage=storage, max_frames=max_frames, progress=progress,
                                   plot=plot)
             replay.outputs = stage.commit()
     except OSError as error:
@@ -426,7 +436,8 @@ def _arm_poses(bag: Path, arm_topic: str | None) -> tuple[np.ndarray, np.ndarray
 
 
 def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic: str, gt_topic: str | None,
-                 camera_info_topic: str | None, arm_topic: str | None, odom_frame: str, base_frame: str | None,
+                 camera_info_topic: str | None, arm_topic: str | None, odom_frame: str, map_frame: str,
+                 base_frame: str | None,
                  storage: str, max_frames: int | None, progress: bool, plot: bool) -> ReplayResult:
     """The replay itself, writing every output into ``stage``."""
     from nocal_ros.data.bags import BagWriter
@@ -438,6 +449,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
     stamps: list[int] = []
     poses_base: list[np.ndarray] = []
     poses_cam: list[np.ndarray] = []
+    corrections: list[np.ndarray] = []  # T_map_odom as of each pose
     tracking: list[str] = []
     scale_sources: list[str] = []
     # Each step's covariance (rho, theta) in the camera frame (NaN where no pair was run), for the report's NEES.
@@ -474,10 +486,14 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                 "/odom", stamp_ns, odom_frame, child, result.T_odom_base, result.twist,
                 result.pose_covariance.reshape(-1), result.twist_covariance.reshape(-1),
             )
-            writer.write_tf("/tf", stamp_ns, [(odom_frame, child, result.T_odom_base)])
+            transforms = [(odom_frame, child, result.T_odom_base)]
+            if map_frame:
+                transforms.append((map_frame, odom_frame, result.T_map_odom))
+            writer.write_tf("/tf", stamp_ns, transforms)
             stamps.append(stamp_ns)
             poses_base.append(result.T_odom_base)
             poses_cam.append(result.T_odom_cam)
+            corrections.append(result.T_map_odom)
             if result.gap and len(stamps) >= 2:
                 dt = (stamps[-1] - stamps[-2]) * 1e-9
                 step_covariances.append(ad_cam_base @ result.twist_covariance @ ad_cam_base.T * dt * dt)
@@ -495,6 +511,8 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                     len(segments), first, last - 1)
     stamps_ns = all_stamps[first:last]
     write_tum(stage["trajectory.tum"], stamps_ns, np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
+    T_map_odom = np.asarray(corrections[first:last]).reshape(-1, 4, 4)
+    write_tum(stage["trajectory_map.tum"], stamps_ns, T_map_odom @ np.asarray(poses_base[first:last]).reshape(-1, 4, 4))
     snapshot = estimator.map_snapshot()  # before the final solve moves the map
     keyframes = None
     if len(snapshot.stamps_ns):
@@ -522,7 +540,7 @@ def _replay_into(stage: StagedOutputs, bag: Path, estimator: Any, *, image_topic
                 "step_covariances": step_covariances[first:last],
                 "camera_history": camera_history,
                 "calibration_status": estimator.calibration_status(), "final_trajectory": final,
-                "keyframes": keyframes},
+                "keyframes": keyframes, "T_map_odom": T_map_odom},
     )
     truth = _ground_truth(bag, gt_topic, camera_info_topic, stamps_ns)
     if truth is not None:
@@ -619,6 +637,15 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
     }
     if len(stamps) >= 2:
         report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
+        if len(stamps) >= 3:
+            report["ape_unaligned"] = evaluation.summary(evaluation.absolute_pose_error(estimate, T_gt, align=False))
+    corrections = replay.extras.get("T_map_odom")
+    if corrections is not None and len(corrections) == len(replay.stamps_ns) and len(stamps) >= 3:
+        # The same frames in the map frame (trajectory_map.tum): where the map had them then, not how they moved.
+        _, map_estimate, _ = _matched(replay.stamps_ns, corrections @ replay.T_odom_cam, truth)
+        report["map_frame"] = evaluation.summary(evaluation.trajectory_errors(stamps, map_estimate, T_gt))
+        report["map_frame"]["ape_unaligned"] = evaluation.summary(
+            evaluation.absolute_pose_error(map_estimate, T_gt, align=False))
     final = replay.extras.get("final_trajectory")
     if final is not None and len(stamps) >= 2:
         # The frames posed again through the final map and camera (what a replay can do at its end).

@@ -26,6 +26,18 @@ Frames and poses
     metres by the current scale estimate. When the estimate changes, the anchor moves so that the pose
     published at that moment does not jump: a new scale applies to the motion from then on.
 
+    ``odom`` is continuous and drifts: a published pose is never taken back. The ``map`` frame (REP 105's,
+    as rtabmap publishes it) holds the maps as bundle adjustment refines them, at the current scale:
+    each map's first keyframe stays where the map was first placed, and ``T_map_odom``
+    (``OdometryResult.T_map_odom``) is how far ``odom`` has drifted from the map's newest keyframe::
+
+        T_map_odom = T_map_cam(newest keyframe) @ inv(T_odom_cam(published at that keyframe))
+
+    ``map`` starts as ``odom`` (the identity before the first map), and a new map is placed through the
+    correction its predecessor left, so the correction only jumps where the map moves. ``map`` is the
+    better place for where the camera is (on the 19 dev replays with a camera height, the position error
+    from the start, unaligned, fell on 17; docs/RESULTS.md), ``odom`` for how it moved between two frames.
+
 States (``OdometryResult.tracking``)
     ``"initialising"``: no map yet (a still camera never leaves this state). The rotation is measured
     from the tracks; no translation is reported (monocular geometry sees none without parallax).
@@ -95,7 +107,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -227,6 +239,8 @@ class OdometryResult:
         tracking: ``"initialising"``, ``"ok"`` or ``"lost"`` (see the module notes).
         scale_source: what made the translation metric: ``"arm"``, ``"ground"``, ``"pose_head"`` or ``"none"``.
         keyframe: the frame became a VO keyframe.
+        T_map_odom: ``(4, 4)`` the ``map`` frame's correction of ``odom`` as of this frame (see the module
+            notes; the identity before the first map and for ``method="pose_head"``).
     """
 
     stamp_ns: int
@@ -243,6 +257,7 @@ class OdometryResult:
     tracking: str = "ok"
     scale_source: str = "pose_head"
     keyframe: bool = False
+    T_map_odom: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 @dataclass
@@ -284,6 +299,8 @@ class MapSnapshot:
         point_ids: ``(M,)`` their ids (the ids of the tracks they were triangulated from).
         map_id: the current map's id (0: no map yet).
         scale_source: what made the current map metric: ``"arm"``, ``"ground"``, ``"pose_head"`` or ``"none"``.
+        T_map_odom: ``(4, 4)`` the ``map`` frame's correction of ``odom`` that places the current map's keyframes
+            and landmarks where ``map`` holds them (``T_map_odom @ T_odom_base``; see the estimator's module notes).
     """
 
     stamps_ns: np.ndarray
@@ -293,6 +310,7 @@ class MapSnapshot:
     point_ids: np.ndarray
     map_id: int = 0
     scale_source: str = "none"
+    T_map_odom: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -492,6 +510,10 @@ class OdometryEstimator:
             self._earlier_path: deque[tuple[int, int, np.ndarray]] = deque(maxlen=PATH_HISTORY)
             self._path_map: LocalMap | None = None
             self._path_placement: np.ndarray | None = None
+            # the map frame: its correction of odom as of the last tracked frame, and where it holds the current
+            # map's first keyframe (T_map_cam, metres; None until the map is first placed)
+            self._T_map_odom = np.eye(4)
+            self._map_origin: np.ndarray | None = None
             if self._vo is not None:
                 self._vo.reset()
 
@@ -841,6 +863,7 @@ class OdometryEstimator:
                         self.counters.pose_head_fallbacks += 1
         self._remember(frame, T_new)
         if vo_frame.state == "ok":
+            self._T_map_odom, self._map_origin = self._map_correction()
             self._map_scales[vo_frame.map_id] = self._scale.scale
             self._map_scale_sources[vo_frame.map_id] = self._scale.source
         self._log_frame(frame, stamp_ns, T_new, vo_frame.map_id if vo_frame.state == "ok" else None)
@@ -1018,32 +1041,61 @@ class OdometryEstimator:
         with self._lock:
             rows = list(self._earlier_path)
             points, point_ids = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+            T_map_odom = self._T_map_odom
             if self._path_map is not None:
-                current, points, point_ids = self._placed_map(self._anchor_map_id, self._path_map)
+                with self._path_map.lock:  # the correction through the same placement as the keyframes
+                    current, points, point_ids = self._placed_map(self._anchor_map_id, self._path_map)
+                    T_map_odom = self._map_correction()[0]
                 rows += current
             poses = np.array([T @ self._T_cam_base for _, _, T in rows]).reshape(-1, 4, 4)
             return MapSnapshot(np.array([stamp for stamp, _, _ in rows], dtype=np.int64), poses,
                                np.array([map_id for _, map_id, _ in rows], dtype=np.int64), points, point_ids,
-                               self._anchor_map_id if self._path_map is not None else 0, self._scale.source)
+                               self._anchor_map_id if self._path_map is not None else 0, self._scale.source,
+                               T_map_odom.copy())
 
     def _placed_map(self, map_id: int, local_map: "LocalMap") -> tuple[list[tuple[int, int, np.ndarray]], np.ndarray, np.ndarray]:
         """One map's keyframes ``[(stamp, map id, T_odom_cam)]``, landmarks ``(M, 3)`` and their ids, in odom at
-        the current scale, placed by its newest keyframe whose published pose is kept (else as last placed)."""
+        the current scale, placed by :meth:`_placement`."""
         scale = self._scale.scale
         with local_map.lock:
-            keyframes = [(keyframe.frame, keyframe.stamp_ns, _scaled(keyframe.T_w_c, scale)) for keyframe in local_map.keyframes]
+            T_odom_map, _ = self._placement(local_map)
+            keyframes = [(keyframe.stamp_ns, _scaled(keyframe.T_w_c, scale)) for keyframe in local_map.keyframes]
             point_ids = np.fromiter(local_map.landmarks, dtype=np.int64, count=len(local_map.landmarks))
             points = np.array(list(local_map.landmarks.values()), dtype=np.float64).reshape(-1, 3) * scale
-        for frame, _, T_map_cam in reversed(keyframes):
-            published = self._published.get(frame)
-            if published is not None:
-                self._path_placement = published @ invert_transform(T_map_cam)
-                break
-        T_odom_map = self._path_placement
         if T_odom_map is None:
             return [], np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-        return ([(stamp, map_id, T_odom_map @ T_map_cam) for _, stamp, T_map_cam in keyframes],
+        return ([(stamp, map_id, T_odom_map @ T_map_cam) for stamp, T_map_cam in keyframes],
                 points @ T_odom_map[:3, :3].T + T_odom_map[:3, 3], point_ids)
+
+    def _placement(self, local_map: "LocalMap") -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(T_odom_map, T_map_cam of the first keyframe)`` in metres at the current scale: the map placed in
+        odom by its newest keyframe whose published pose is kept (else as last placed; None before that)."""
+        scale = self._scale.scale
+        oldest_kept = next(iter(self._published), None)
+        with local_map.lock:
+            keyframes = local_map.keyframes
+            if not keyframes:
+                return self._path_placement, None
+            for keyframe in reversed(keyframes):
+                if oldest_kept is None or keyframe.frame < oldest_kept:
+                    break  # published poses are kept for the newest frames only
+                published = self._published.get(keyframe.frame)
+                if published is not None:
+                    self._path_placement = published @ invert_transform(_scaled(keyframe.T_w_c, scale))
+                    break
+            return self._path_placement, _scaled(keyframes[0].T_w_c, scale)
+
+    def _map_correction(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(T_map_odom, the map's origin)`` for the current map as it stands: the map frame holds the map's
+        first keyframe at its origin (set where the map is first placed, through the correction before it)."""
+        if self._path_map is None:
+            return self._T_map_odom, self._map_origin
+        T_odom_map, T_map_first = self._placement(self._path_map)
+        if T_odom_map is None or T_map_first is None:
+            return self._T_map_odom, self._map_origin
+        T_odom_first = T_odom_map @ T_map_first
+        origin = self._T_map_odom @ T_odom_first if self._map_origin is None else self._map_origin
+        return origin @ invert_transform(T_odom_first), origin
 
     def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
         self._published[frame] = T_odom_cam
@@ -1058,6 +1110,7 @@ class OdometryEstimator:
         if self._path_map is not None and self._path_map is not self._vo.map:  # at the old map's id and last scale
             self._earlier_path.extend(self._placed_map(self._anchor_map_id, self._path_map)[0])
         self._path_map, self._path_placement = self._vo.map, None
+        self._map_origin = None  # placed through the correction the last map left (self._T_map_odom)
         reference = vo_frame.reference_frame
         self._anchor = self._published.get(reference, self._T_odom_base @ self._T_base_cam).copy()
         self._anchor_map_id = vo_frame.map_id
@@ -1313,6 +1366,7 @@ class OdometryEstimator:
             tracking=tracking,
             scale_source=scale_source,
             keyframe=keyframe,
+            T_map_odom=self._T_map_odom.copy(),
         )
 
 

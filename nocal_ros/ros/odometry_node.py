@@ -1,4 +1,4 @@
-"""rclpy odometry node: images in, ``nav_msgs/Odometry``, ``CameraInfo`` and ``odom -> base`` TF out, and
+"""rclpy odometry node: images in, ``nav_msgs/Odometry``, ``CameraInfo`` and ``map -> odom -> base`` TF out, and
 the VO's keyframes (``keyframe_path``, ``nav_msgs/Path``) and landmarks (``map_points``,
 ``sensor_msgs/PointCloud2``) in ``odom`` as bundle adjustment refines them.
 
@@ -22,6 +22,9 @@ Parameters (see config/odometry.yaml):
         ``~/reload_model`` re-reads this parameter, so a store's newest version is picked up.
     device: auto | cpu | cuda | cuda:N;  precision: fp32 | fp16 | bf16 (CUDA only)
     odom_frame (odom), base_frame (base_link; "" = the camera frame), publish_tf (true)
+    map_frame (map): with publish_tf, ``map -> odom`` is broadcast at each frame's stamp beside ``odom -> base``:
+        the map frame's correction of odom from the refined keyframes (REP 105, as rtabmap does;
+        ``OdometryResult.T_map_odom``); "" = none (another node owns ``map``, e.g. a localiser)
     camera_frame: overrides the images' header frame id ("" = use it)
     method: vo (keyframe VO calibrating the camera online) | pose_head (the pose head alone)
     camera_name, camera_info_url: camera_info_manager's: the online camera starts from the calibration
@@ -100,6 +103,7 @@ PARAMETERS: dict[str, Any] = {
     "precision": "fp32",
     "method": "vo",
     "odom_frame": "odom",
+    "map_frame": "map",
     "base_frame": "base_link",
     "camera_frame": "",
     "publish_tf": True,
@@ -144,6 +148,9 @@ class OdometryNode(Node):
         if int(p["threads"]) > 0:
             torch.set_num_threads(int(p["threads"]))
         self.odom_frame = str(p["odom_frame"])
+        self.map_frame = str(p["map_frame"])
+        if self.map_frame and self.map_frame == self.odom_frame:
+            raise ConfigError(f"map_frame and odom_frame must differ (both {self.map_frame!r}); \"\" turns map -> odom off")
         self.base_frame = str(p["base_frame"])
         self.camera_frame = str(p["camera_frame"])
         self.publish_tf = bool(p["publish_tf"])
@@ -411,7 +418,10 @@ class OdometryNode(Node):
             base = self.base_frame or camera_frame
             self.odom_publisher.publish(odometry_message(result, msg.header.stamp, self.odom_frame, base))
             if self.publish_tf:
-                self.tf_broadcaster.sendTransform(transform_stamped(result.T_odom_base, msg.header.stamp, self.odom_frame, base))
+                transforms = [transform_stamped(result.T_odom_base, msg.header.stamp, self.odom_frame, base)]
+                if self.map_frame:
+                    transforms.append(transform_stamped(result.T_map_odom, msg.header.stamp, self.map_frame, self.odom_frame))
+                self.tf_broadcaster.sendTransform(transforms)
             self.health.published(stamp_ns, self._now_ns(), (time.perf_counter() - received) * 1e3,
                                   result.tracking, result.scale_source)
         self._publish_camera_info(Header(stamp=msg.header.stamp, frame_id=camera_frame), rgb.shape[1], rgb.shape[0])
