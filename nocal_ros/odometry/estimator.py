@@ -28,15 +28,16 @@ Frames and poses
 
     ``odom`` is continuous and drifts: a published pose is never taken back. The ``map`` frame (REP 105's,
     as rtabmap publishes it) holds the maps as bundle adjustment refines them, at the current scale:
-    each map's first keyframe stays where the map was first placed, and ``T_map_odom``
+    each map's first keyframe stays where odometry published it, and ``T_map_odom``
     (``OdometryResult.T_map_odom``) is how far ``odom`` has drifted from the map's newest keyframe::
 
         T_map_odom = T_map_cam(newest keyframe) @ inv(T_odom_cam(published at that keyframe))
 
-    ``map`` starts as ``odom`` (the identity before the first map), and a new map is placed through the
-    correction its predecessor left, so the correction only jumps where the map moves. ``map`` is the
-    better place for where the camera is (on the 19 dev replays with a camera height, the position error
-    from the start, unaligned, fell on 17; docs/RESULTS.md), ``odom`` for how it moved between two frames.
+    ``map`` starts as ``odom`` (the identity before the first map), and a new map's first keyframe is placed
+    through the correction its predecessor left. The correction jumps where the map moves (bundle
+    adjustment, a new scale) and where a map starts. ``map`` is the better frame for where the camera is
+    (on the 19 dev replays with a camera height, the position error from the start, unaligned, fell on
+    17 and the rotation error on 18; docs/RESULTS.md), ``odom`` for how it moved between two frames.
 
 States (``OdometryResult.tracking``)
     ``"initialising"``: no map yet (a still camera never leaves this state). The rotation is measured
@@ -1058,7 +1059,7 @@ class OdometryEstimator:
         the current scale, placed by :meth:`_placement`."""
         scale = self._scale.scale
         with local_map.lock:
-            T_odom_map, _ = self._placement(local_map)
+            T_odom_map, _, _ = self._placement(local_map)
             keyframes = [(keyframe.stamp_ns, _scaled(keyframe.T_w_c, scale)) for keyframe in local_map.keyframes]
             point_ids = np.fromiter(local_map.landmarks, dtype=np.int64, count=len(local_map.landmarks))
             points = np.array(list(local_map.landmarks.values()), dtype=np.float64).reshape(-1, 3) * scale
@@ -1067,15 +1068,15 @@ class OdometryEstimator:
         return ([(stamp, map_id, T_odom_map @ T_map_cam) for stamp, T_map_cam in keyframes],
                 points @ T_odom_map[:3, :3].T + T_odom_map[:3, 3], point_ids)
 
-    def _placement(self, local_map: "LocalMap") -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(T_odom_map, T_map_cam of the first keyframe)`` in metres at the current scale: the map placed in
-        odom by its newest keyframe whose published pose is kept (else as last placed; None before that)."""
+    def _placement(self, local_map: "LocalMap") -> tuple[np.ndarray | None, int | None, np.ndarray | None]:
+        """``(T_odom_map, the first keyframe's frame, its T_map_cam)`` in metres at the current scale: the map
+        placed in odom by its newest keyframe whose published pose is kept (else as last placed; None before that)."""
         scale = self._scale.scale
         oldest_kept = next(iter(self._published), None)
         with local_map.lock:
             keyframes = local_map.keyframes
             if not keyframes:
-                return self._path_placement, None
+                return self._path_placement, None, None
             for keyframe in reversed(keyframes):
                 if oldest_kept is None or keyframe.frame < oldest_kept:
                     break  # published poses are kept for the newest frames only
@@ -1083,18 +1084,25 @@ class OdometryEstimator:
                 if published is not None:
                     self._path_placement = published @ invert_transform(_scaled(keyframe.T_w_c, scale))
                     break
-            return self._path_placement, _scaled(keyframes[0].T_w_c, scale)
+            return self._path_placement, keyframes[0].frame, _scaled(keyframes[0].T_w_c, scale)
 
     def _map_correction(self) -> tuple[np.ndarray, np.ndarray | None]:
         """``(T_map_odom, the map's origin)`` for the current map as it stands: the map frame holds the map's
-        first keyframe at its origin (set where the map is first placed, through the correction before it)."""
+        first keyframe at its origin, where odometry published that frame, through the correction before the
+        map (set where the map is first placed)."""
         if self._path_map is None:
             return self._T_map_odom, self._map_origin
-        T_odom_map, T_map_first = self._placement(self._path_map)
+        T_odom_map, first_frame, T_map_first = self._placement(self._path_map)
         if T_odom_map is None or T_map_first is None:
             return self._T_map_odom, self._map_origin
         T_odom_first = T_odom_map @ T_map_first
-        origin = self._T_map_odom @ T_odom_first if self._map_origin is None else self._map_origin
+        origin = self._map_origin
+        if origin is None:
+            # The first keyframe as published, not as placed through the newest: it was published before the
+            # map's first steps through the guessed camera (r160_205's map agreed with the truth to 1 deg
+            # from its first keyframe to its newest, where odom's chain was 7 deg off; measured).
+            published = self._published.get(first_frame)
+            origin = self._T_map_odom @ (T_odom_first if published is None else published)
         return origin @ invert_transform(T_odom_first), origin
 
     def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
