@@ -338,6 +338,21 @@ def test_the_keyframe_path_and_map_points_are_the_refined_map_placed_where_odome
     assert len(estimator.map_snapshot().stamps_ns) == 0
 
 
+def test_a_keyframe_left_non_finite_keeps_the_last_map_correction(sequence):
+    """A keyframe pose a failed solve left NaN does not reach map -> odom: the correction stays the last
+    finite one (tf2 refuses a NaN transform, and a consumer of map would jump to nowhere)."""
+    estimator = OdometryEstimator(synchronous_mapping=True)
+    results = run(estimator, sequence.images[:30], sequence.stamps_ns[:30])
+    last = results[-1].T_map_odom
+    assert results[-1].tracking == "ok" and np.isfinite(last).all() and not np.allclose(last, np.eye(4))
+    np.testing.assert_allclose(estimator.map_snapshot().T_map_odom, last, atol=1e-12)
+    local_map = estimator._vo.map
+    with local_map.lock:
+        local_map.keyframes[-1].T_w_c[:3, 3] = np.nan
+    np.testing.assert_array_equal(estimator.map_snapshot().T_map_odom, last)
+    estimator.close()
+
+
 def test_a_camera_swapped_at_a_cut_is_not_carried_into_the_new_map(sequence):
     """After a cut to another room seen through another camera of the same size (15 % shorter focal
     length), the camera carried into the new map is checked against it, rejected, and calibrated online

@@ -1103,7 +1103,10 @@ class OdometryEstimator:
             # from its first keyframe to its newest, where odom's chain was 7 deg off; measured).
             published = self._published.get(first_frame)
             origin = self._T_map_odom @ (T_odom_first if published is None else published)
-        return origin @ invert_transform(T_odom_first), origin
+        correction = origin @ invert_transform(T_odom_first)
+        if not np.isfinite(correction).all():  # a keyframe a failed solve left non-finite: keep the last one
+            return self._T_map_odom, self._map_origin
+        return correction, origin
 
     def _remember(self, frame: int, T_odom_cam: np.ndarray) -> None:
         self._published[frame] = T_odom_cam
