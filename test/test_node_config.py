@@ -57,3 +57,19 @@ def test_odometry_config_matches_the_node():
 def test_trainer_config_matches_the_node():
     defaults = {k: v[0] for k, v in declared("trainer_node.py").items()}
     assert check("trainer.yaml", "trainer_node.py", "trainer_node", defaults) == set(defaults)
+
+
+def test_the_rviz_config_shows_what_the_odometry_node_publishes():
+    """config/odometry.rviz subscribes to the node's topics (its publishers' names, at the root namespace
+    the launch file uses) and fixes the view in the configured map frame, so it does not drift from them."""
+    source = (ROOT / "nocal_ros" / "ros" / "odometry_node.py").read_text()
+    published = {"/" + node.args[1].value for node in ast.walk(ast.parse(source))
+                 if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "create_publisher"
+                 and isinstance(node.args[1], ast.Constant)}
+    manager = yaml.safe_load((ROOT / "config" / "odometry.rviz").read_text())["Visualization Manager"]
+    topics = {display["Topic"]["Value"] for display in manager["Displays"] if "Topic" in display}
+    assert topics == {"/odom", "/keyframe_path", "/map_points"} and topics <= published
+    parameters = yaml.safe_load((ROOT / "config" / "odometry.yaml").read_text())["odometry_node"]["ros__parameters"]
+    assert manager["Global Options"]["Fixed Frame"] == parameters["map_frame"] == declared("odometry_node.py")["map_frame"]
+    setup = (ROOT / "setup.py").read_text()
+    assert 'glob("config/*.rviz")' in setup  # installed beside the parameter files
