@@ -453,10 +453,13 @@ def plot_trajectory(
     truth: np.ndarray,
     title: str = "",
     calibration_history: list[dict[str, Any]] | None = None,
+    others: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """PNG: top view of the estimate (after Sim(3) alignment) and the truth; position error after that
     alignment and the per-pair RPE over time; with ``calibration_history`` (rows with ``stamp_ns``,
     ``focal_error_percent`` and ``dr``), a third panel with the online camera's errors over time.
+    ``others``: more estimates of the same frames (label -> poses), each drawn Sim(3) aligned on its own
+    (dashed) in the top view and with its aligned position error over time.
 
     The top view shows the plane of the truth's two largest position extents (world frames differ in
     which axis is up). Uses matplotlib's Agg backend: no display needed.
@@ -470,6 +473,10 @@ def plot_trajectory(
     truth = _check_poses(truth, "true poses")
     if len(estimate) != len(truth) or len(truth) < 3:
         raise ValueError(f"need two trajectories of the same length >= 3, got {len(estimate)} and {len(truth)} poses")
+    others = {label: _check_poses(poses, label) for label, poses in (others or {}).items()}
+    if any(len(poses) != len(truth) for poses in others.values()):
+        raise ValueError(f"every estimate needs the truth's {len(truth)} poses: "
+                         + ", ".join(f"{label} has {len(poses)}" for label, poses in others.items()))
     ape = absolute_pose_error(estimate, truth, correct_scale=True)
     if ape.get("undefined"):  # a still or straight-line truth: show the estimate as it is, from the shared start
         aligned = estimate[:, :3, 3]
@@ -494,6 +501,15 @@ def plot_trajectory(
     top, error_axis = axes[0], axes[1]
     top.plot(truth[:, a, 3], truth[:, b, 3], "k-", label="truth")
     top.plot(aligned[:, a], aligned[:, b], "r-", label=estimate_label)
+    other_errors = []
+    for (label, poses), colour in zip(others.items(), ("tab:orange", "tab:purple", "tab:brown")):
+        other = absolute_pose_error(poses, truth, correct_scale=True)
+        if other.get("undefined"):
+            continue
+        fit = np.array(other["alignment"])
+        placed = other["scale"] * poses[:, :3, 3] @ fit[:3, :3].T + fit[:3, 3]
+        top.plot(placed[:, a], placed[:, b], "--", color=colour, label=f"{label} (Sim(3) aligned, scale {other['scale']:.3f})")
+        other_errors.append((label, colour, np.asarray(other["translation_m_per_pose"])))
     top.plot(truth[0, a, 3], truth[0, b, 3], "ko")
     top.set_xlabel(f"{'xyz'[a]} (m)")
     top.set_ylabel(f"{'xyz'[b]} (m)")
@@ -502,6 +518,8 @@ def plot_trajectory(
     top.set_title("top view")
     error_axis.plot(time, position_error, "b-",
                     label="position error, " + ("unaligned" if ape.get("undefined") else "Sim(3) aligned"))
+    for label, colour, errors in other_errors:
+        error_axis.plot(time, errors, "--", color=colour, label=f"{label}: position error, Sim(3) aligned")
     error_axis.plot(time[1:], rpe["translation_m_per_pair"], "c-", label="RPE translation per pair")
     error_axis.set_xlabel(time_label)
     error_axis.set_ylabel("error (m)")

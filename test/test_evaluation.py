@@ -190,6 +190,14 @@ def test_report_is_json_table_and_plot(tmp_path):
     path = ev.plot_trajectory(tmp_path / "plots" / "trajectory.png", stamps, estimate, truth_poses, title="test")
     image = cv2.imread(str(path))
     assert image is not None and image.shape[0] > 100 and image.std() > 0
+    # Another estimate of the same frames (nocal odometry's map frame) is drawn beside it.
+    other = perturb(truth_poses, seed=9, rotation=0.05, translation=0.05)
+    with_other = cv2.imread(str(ev.plot_trajectory(tmp_path / "other.png", stamps, estimate, truth_poses, title="test",
+                                                   others={"map frame": other})))
+    assert with_other.shape == image.shape and np.abs(with_other.astype(int) - image).sum() > 0
+    other[3, 0, 3] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        ev.plot_trajectory(tmp_path / "bad.png", stamps, estimate, truth_poses, others={"map frame": other})
 
 
 def test_bad_poses_and_missing_evo_are_reported(monkeypatch):

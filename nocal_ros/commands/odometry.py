@@ -773,5 +773,9 @@ def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
     from nocal_ros import evaluation
 
     stamps, estimate, T_gt = _matched(replay.stamps_ns, replay.T_odom_cam, truth)
-    evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}",
+    others = {}
+    corrections = replay.extras.get("T_map_odom")
+    if corrections is not None and len(corrections) == len(replay.stamps_ns):
+        others["map frame"] = _matched(replay.stamps_ns, corrections @ replay.T_odom_cam, truth)[1]
+    evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}", others=others,
                                calibration_history=(replay.report or {}).get("calibration_history"))
