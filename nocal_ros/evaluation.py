@@ -458,8 +458,10 @@ def plot_trajectory(
     """PNG: top view of the estimate (after Sim(3) alignment) and the truth; position error after that
     alignment and the per-pair RPE over time; with ``calibration_history`` (rows with ``stamp_ns``,
     ``focal_error_percent`` and ``dr``), a third panel with the online camera's errors over time.
-    ``others``: more estimates of the same frames (label -> poses), each drawn Sim(3) aligned on its own
-    (dashed) in the top view and with its aligned position error over time.
+    ``others``: more estimates of the same frames (label -> poses) in the truth's frame (both starting at the
+    first pose), drawn as they are (dashed, no alignment) with their position errors over time, beside the
+    estimate's own error without alignment (dotted): for a metric estimate whose history is not revised,
+    such as nocal odometry's map frame, where a fit to the truth would hide an offset odom carries.
 
     The top view shows the plane of the truth's two largest position extents (world frames differ in
     which axis is up). Uses matplotlib's Agg backend: no display needed.
@@ -503,13 +505,8 @@ def plot_trajectory(
     top.plot(aligned[:, a], aligned[:, b], "r-", label=estimate_label)
     other_errors = []
     for (label, poses), colour in zip(others.items(), ("tab:orange", "tab:purple", "tab:brown")):
-        other = absolute_pose_error(poses, truth, correct_scale=True)
-        if other.get("undefined"):
-            continue
-        fit = np.array(other["alignment"])
-        placed = other["scale"] * poses[:, :3, 3] @ fit[:3, :3].T + fit[:3, 3]
-        top.plot(placed[:, a], placed[:, b], "--", color=colour, label=f"{label} (Sim(3) aligned, scale {other['scale']:.3f})")
-        other_errors.append((label, colour, np.asarray(other["translation_m_per_pose"])))
+        top.plot(poses[:, a, 3], poses[:, b, 3], "--", color=colour, label=f"{label} (not aligned)")
+        other_errors.append((label, colour, np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)))
     top.plot(truth[0, a, 3], truth[0, b, 3], "ko")
     top.set_xlabel(f"{'xyz'[a]} (m)")
     top.set_ylabel(f"{'xyz'[b]} (m)")
@@ -518,8 +515,11 @@ def plot_trajectory(
     top.set_title("top view")
     error_axis.plot(time, position_error, "b-",
                     label="position error, " + ("unaligned" if ape.get("undefined") else "Sim(3) aligned"))
+    if other_errors:
+        error_axis.plot(time, np.linalg.norm(estimate[:, :3, 3] - truth[:, :3, 3], axis=1), "r:",
+                        label="position error, not aligned")
     for label, colour, errors in other_errors:
-        error_axis.plot(time, errors, "--", color=colour, label=f"{label}: position error, Sim(3) aligned")
+        error_axis.plot(time, errors, "--", color=colour, label=f"{label}: position error, not aligned")
     error_axis.plot(time[1:], rpe["translation_m_per_pair"], "c-", label="RPE translation per pair")
     error_axis.set_xlabel(time_label)
     error_axis.set_ylabel("error (m)")
