@@ -75,6 +75,19 @@ def test_a_rejected_given_calibration_warns_for_as_long_as_the_node_runs():
         assert level == WARN and message.startswith("the given calibration disagrees with the stream")
 
 
+def test_the_map_correction_is_reported_as_a_distance_and_an_angle():
+    """How far odom has drifted from the map: the last map -> odom's translation and rotation angle."""
+    health = OdometryHealth()
+    _, _, values = health.report(T0, frames_received=0)
+    assert (values["map_correction_m"], values["map_correction_deg"]) == (0.0, 0.0)
+    T_map_odom = make_transform(so3_exp(np.radians(12.0) * np.array([0.6, 0.0, 0.8])), np.array([0.3, -0.4, 1.2]))
+    last = feed(health, 3, delay_s=0.05, T_map_odom=T_map_odom)
+    _, _, values = health.report(last, frames_received=3)
+    assert values["map_correction_m"] == pytest.approx(1.3) and values["map_correction_deg"] == pytest.approx(12.0)
+    health.reset()
+    assert health.report(last, frames_received=3)[2]["map_correction_m"] == 0.0
+
+
 def test_reset_forgets_clock_times_from_before_a_jump():
     health = OdometryHealth()
     feed(health, 5, delay_s=0.05)

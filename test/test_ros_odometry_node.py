@@ -275,13 +275,15 @@ def test_diagnostics_report_latency_rate_drops_model_and_calibration(ros, frames
     assert values["model_id"].startswith("model.safetensors@")
     for key in ("latency_ms_median", "rate_hz", "delay_s_median", "odometry_age_s", "frames_dropped_stale",
                 "estimator_nonfinite_skipped", "tracking_ms_median", "bundle_adjustment_ms_median",
-                "mapping_keyframes_merged", "mapping_failed_windows", "mapping_solver_restarts"):
+                "mapping_keyframes_merged", "mapping_failed_windows", "mapping_solver_restarts",
+                "map_correction_m", "map_correction_deg"):
         assert key in values
     assert values["mapping_solver_restarts"] == "0"
     assert float(values["latency_ms_median"]) > 0
     # The calibration status issue 11 asks for, and where the camera comes from.
     assert (values["calibration_state"], values["calibration_source"]) == ("prior", "model")
     assert values["tracking"] == "ok" and values["scale_source"] == "pose_head"
+    assert float(values["map_correction_m"]) == 0.0  # the pose head alone: no map to correct odom by
 
 
 def test_reset_and_reload_model_services(ros, frames, tmp_path):

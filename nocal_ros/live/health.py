@@ -9,7 +9,9 @@ replay:
 * ``age``: clock time now minus the stamp of the last odometry published (grows when images stop or
   every frame fails);
 * ``rate``: odometry messages per second of clock time;
-* ``latency``: wall-clock time from receiving the image to publishing its odometry (compute alone).
+* ``latency``: wall-clock time from receiving the image to publishing its odometry (compute alone);
+* ``map_correction``: the size of the last ``map -> odom`` (m and deg): how far odom has drifted from
+  the refined map (a start-up on the wrong scale, a scale that changed).
 
 Levels follow ``diagnostic_msgs/DiagnosticStatus`` (OK 0, WARN 1, ERROR 2): WARN when no image has
 arrived, tracking is lost, the node falls behind (median delay above ``max_delay_s``), no odometry has
@@ -56,13 +58,20 @@ class OdometryHealth:
             self._last_stamp_ns: int | None = None
             self._tracking = "none"
             self._scale_source = "none"
+            self._map_correction = (0.0, 0.0)
             if count:
                 self.clock_resets += 1
 
     def published(self, stamp_ns: int, now_ns: int, latency_ms: float, tracking: str = "ok",
-                  scale_source: str = "none") -> None:
-        """Record one odometry message: its image stamp, the clock at publication, compute latency."""
+                  scale_source: str = "none", T_map_odom: np.ndarray | None = None) -> None:
+        """Record one odometry message: its image stamp, the clock at publication, compute latency, and the
+        ``map -> odom`` published with it."""
+        correction = (0.0, 0.0)
+        if T_map_odom is not None:
+            cosine = (np.trace(T_map_odom[:3, :3]) - 1.0) / 2.0
+            correction = (float(np.linalg.norm(T_map_odom[:3, 3])), float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))))
         with self._lock:
+            self._map_correction = correction
             self._published_at.append(int(now_ns))
             self._delays_ns.append(int(now_ns) - int(stamp_ns))
             self._latencies_ms.append(float(latency_ms))
@@ -82,6 +91,7 @@ class OdometryHealth:
             delays = np.asarray(self._delays_ns, dtype=np.float64) * 1e-9
             latencies = np.asarray(self._latencies_ms, dtype=np.float64)
             last_stamp, tracking, scale_source = self._last_stamp_ns, self._tracking, self._scale_source
+            correction = self._map_correction
         span = (published[-1] - published[0]) * 1e-9 if len(published) > 1 else 0.0
         values: dict[str, Any] = {
             "rate_hz": (len(published) - 1) / span if span > 0 else 0.0,
@@ -92,6 +102,8 @@ class OdometryHealth:
             "latency_ms_max": float(latencies.max()) if latencies.size else 0.0,
             "tracking": tracking,
             "scale_source": scale_source,
+            "map_correction_m": correction[0],
+            "map_correction_deg": correction[1],
             "clock_resets": self.clock_resets,
         }
         problems = []

@@ -423,7 +423,7 @@ class OdometryNode(Node):
                     transforms.append(transform_stamped(result.T_map_odom, msg.header.stamp, self.map_frame, self.odom_frame))
                 self.tf_broadcaster.sendTransform(transforms)
             self.health.published(stamp_ns, self._now_ns(), (time.perf_counter() - received) * 1e3,
-                                  result.tracking, result.scale_source)
+                                  result.tracking, result.scale_source, result.T_map_odom)
         self._publish_camera_info(Header(stamp=msg.header.stamp, frame_id=camera_frame), rgb.shape[1], rgb.shape[0])
         if self.arm_pose_source == "tf":
             self._pending_arm.add(stamp_ns)
