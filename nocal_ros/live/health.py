@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from nocal_ros.geometry import rotation_angle_deg
+
 OK, WARN, ERROR = 0, 1, 2
 
 
@@ -68,8 +70,7 @@ class OdometryHealth:
         ``map -> odom`` published with it."""
         correction = (0.0, 0.0)
         if T_map_odom is not None:
-            cosine = (np.trace(T_map_odom[:3, :3]) - 1.0) / 2.0
-            correction = (float(np.linalg.norm(T_map_odom[:3, 3])), float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))))
+            correction = (float(np.linalg.norm(T_map_odom[:3, 3])), rotation_angle_deg(T_map_odom[:3, :3]))
         with self._lock:
             self._map_correction = correction
             self._published_at.append(int(now_ns))
