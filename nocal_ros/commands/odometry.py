@@ -613,6 +613,15 @@ def _matched(stamps_ns: np.ndarray, T_odom_cam: np.ndarray, truth: GroundTruth) 
     return common, estimate, T_gt
 
 
+def _map_frame_poses(replay: ReplayResult, truth: GroundTruth) -> np.ndarray | None:
+    """The replay's camera poses in the map frame as of each frame, matched to the truth as :func:`_matched`
+    matches odom's (None when the replay kept no corrections)."""
+    corrections = replay.extras.get("T_map_odom")
+    if corrections is None or len(corrections) != len(replay.stamps_ns):
+        return None
+    return _matched(replay.stamps_ns, corrections @ replay.T_odom_cam, truth)[1]
+
+
 def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, estimator: Any) -> dict:
     """RPE, APE with SE(3) and Sim(3) alignment, and the camera errors (focal, principal point, dr)
     with the fit residual of the published distortion model.
@@ -639,10 +648,9 @@ def evaluate_replay(replay: ReplayResult, truth: GroundTruth, calibration: Any, 
         report.update(evaluation.summary(evaluation.trajectory_errors(stamps, estimate, T_gt)))
         if len(stamps) >= 3:
             report["ape_unaligned"] = evaluation.summary(evaluation.absolute_pose_error(estimate, T_gt, align=False))
-    corrections = replay.extras.get("T_map_odom")
-    if corrections is not None and len(corrections) == len(replay.stamps_ns) and len(stamps) >= 3:
+    map_estimate = _map_frame_poses(replay, truth)
+    if map_estimate is not None and len(stamps) >= 3:
         # The same frames in the map frame (trajectory_map.tum): where the map had them then, not how they moved.
-        _, map_estimate, _ = _matched(replay.stamps_ns, corrections @ replay.T_odom_cam, truth)
         report["map_frame"] = evaluation.summary(evaluation.trajectory_errors(stamps, map_estimate, T_gt))
         report["map_frame"]["ape_unaligned"] = evaluation.summary(
             evaluation.absolute_pose_error(map_estimate, T_gt, align=False))
@@ -773,9 +781,7 @@ def plot_replay(replay: ReplayResult, truth: GroundTruth, path: Path) -> None:
     from nocal_ros import evaluation
 
     stamps, estimate, T_gt = _matched(replay.stamps_ns, replay.T_odom_cam, truth)
-    others = {}
-    corrections = replay.extras.get("T_map_odom")
-    if corrections is not None and len(corrections) == len(replay.stamps_ns):
-        others["map frame"] = _matched(replay.stamps_ns, corrections @ replay.T_odom_cam, truth)[1]
+    map_estimate = _map_frame_poses(replay, truth)
+    others = {} if map_estimate is None else {"map frame": map_estimate}
     evaluation.plot_trajectory(path, stamps, estimate, T_gt, title=f"nocal odometry: {replay.model_id}", others=others,
                                calibration_history=(replay.report or {}).get("calibration_history"))
